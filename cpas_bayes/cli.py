@@ -1,0 +1,109 @@
+"""The ``cpas-bayes`` command line.
+
+Each command is a thin face over a library function: parse options, call,
+print where the outputs are. Bad input ends with one message naming the file,
+the place and the fix (exit status 2); an unexpected fault ends with a short
+message (exit status 1) and the traceback only when ``CPAS_BAYES_DEBUG=1``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import traceback
+from pathlib import Path
+
+import click
+
+from . import __version__
+from .bundle import read_bundle, summary
+from .errors import InputError
+
+
+def _format_summary(s):
+    lines = [f"{s['name']}  ({s['phase']}, {s['units']} units)",
+             f"  {s['samples']} samples over {s['duration_s']:.2f} s at {s['sample_rate_hz']:.1f} Hz"]
+    for p in s["parachutes"]:
+        extras = [x for x, on in (("load cell", p["load_cell"]), ("fly-out angle", p["flyout_angle"])) if on]
+        stages = ", ".join(f"{st['label']} @ {st['start']:.3f} s" for st in p["stages"])
+        lines.append(f"  {p['id']}: {p['kind']}, {p['inflation']} mass, D_o {p['diameter']:g}"
+                     f"{'; ' + ', '.join(extras) if extras else ''}")
+        lines.append(f"      stages: {stages}")
+    lines.append(f"  channels: {', '.join(s['channels'])}")
+    return "\n".join(lines)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="cpas-bayes")
+def cli():
+    """Parachute flight-test reduction, Bayesian inflation reconstruction and Monte Carlo loads."""
+
+
+@cli.command()
+@click.argument("bundles", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the summaries as JSON.")
+def validate(bundles, as_json):
+    """Check flight-test bundle folders and summarise them.
+
+    Exit status is non-zero if any bundle is refused; every refusal is printed.
+    """
+    failures, summaries = 0, []
+    for path in bundles:
+        try:
+            summaries.append(summary(read_bundle(path)))
+        except InputError as exc:
+            failures += 1
+            click.secho(f"refused: {exc}", fg="red", err=True)
+    if as_json:
+        click.echo(json.dumps(summaries, indent=2))
+    else:
+        for s in summaries:
+            click.echo(_format_summary(s))
+    if failures:
+        raise SystemExit(2)
+
+
+@cli.command()
+@click.option("--out", type=click.Path(path_type=Path), default=Path("reports/demo"), show_default=True,
+              help="Folder for the demo report.")
+def demo(out):
+    """Run the main job on the bundled data and write its report."""
+    from .demo import run_demo
+
+    index = run_demo(out, echo=click.echo)
+    click.echo(f"report: {index}")
+
+
+# -- commands added by later capabilities go above this line --
+
+
+def main(argv=None):
+    """Entry point: run the CLI, turning bad input into one clear message."""
+    try:
+        cli.main(args=argv, prog_name="cpas-bayes", standalone_mode=False)
+    except InputError as exc:
+        click.secho(f"error: {exc}", fg="red", err=True)
+        return 2
+    except click.exceptions.Abort:
+        click.echo("interrupted; partial work is checkpointed where the command supports it", err=True)
+        return 130
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else 1
+    except KeyboardInterrupt:
+        click.echo("interrupted; partial work is checkpointed where the command supports it", err=True)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the last line of defence for a CLI user
+        if os.environ.get("CPAS_BAYES_DEBUG") == "1":
+            traceback.print_exc()
+        click.secho(f"internal error: {type(exc).__name__}: {exc}\n"
+                    "rerun with CPAS_BAYES_DEBUG=1 to see the traceback and report it.", fg="red", err=True)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,190 @@
+"""Drag-area growth of one parachute, stage by stage (the seed's §IV–VI).
+
+Pure numpy; every function broadcasts over leading batch axes (walkers, Monte
+Carlo runs) and over time.
+
+Notation (seed nomenclature): ``cds_start`` is the drag area the canopy holds
+when the stage begins ((C_D S)_{i-1}; 0 at bag strip, the retained value at a
+disreef), ``cds_i`` the stage's steady drag area, ``cds_o`` the full-open drag
+area and ``eps_i = cds_i / cds_o`` the reefing ratio.
+
+Equations
+---------
+Fill time (Eq. 14)::
+
+    t_f = n · D_o · sqrt((CDS_i − CDS_start) / CDS_o) / V_i
+
+Over-inflation ratio and peak fill time (Eq. 15)::
+
+    S    = (C_k·CDS_i − CDS_start) / (CDS_i − CDS_start)
+    t_fp = t_f · S^(1/expopen)
+
+Growth for 0 ≤ τ < t_fp (τ = time since the stage started)::
+
+    CDS(τ) = CDS_start + (CDS_i − CDS_start) · (τ / t_f)^expopen
+
+which passes CDS_i at t_f and reaches C_k·CDS_i at t_fp. Decay to CDS_i over
+t_k after the peak, either a linear ramp (the papers' "ramp-down time") or the
+exponential form C_k·CDS_i·C_k^(−(τ−t_fp)/t_k) of NASA's DCLDYN model; both end
+exactly at CDS_i at τ = t_fp + t_k.
+
+Re-parameterisation (Eq. 16–18)::
+
+    n_p = n · S^(1/expopen)          n = n_p · S^(−1/expopen)
+
+so that n_p fixes the time to the peak drag area: t_fp = n_p·D_o·sqrt(...)/V_i.
+
+Finite-mass stages use the same law with C_k = 1 (then S = 1 and n = n_p).
+
+Retain-at-disreef (seed Fig. 29): a stage starts from the drag area actually
+held at its start, so a stage cut short by the next disreef gives no
+discontinuity. A stage whose drag area is not above the held one (nothing to
+fill) has zero fill time and snaps to its own value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DECAY_SHAPES = ("linear", "exponential")
+
+
+def fill_time(n, diameter, cds_start, cds_i, cds_o, v_i):
+    """Eq. 14: time from stage start to reaching CDS_i. Zero when nothing fills."""
+    growth = np.maximum(np.asarray(cds_i, float) - cds_start, 0.0)
+    return n * diameter * np.sqrt(growth / cds_o) / v_i
+
+
+def overinflation_ratio(ck, cds_i, cds_start):
+    """S of Eq. 15–17; 1 where the stage has nothing to fill (then unused)."""
+    cds_i = np.asarray(cds_i, float)
+    growth = cds_i - cds_start
+    safe = np.where(growth > 0, growth, 1.0)
+    return np.where(growth > 0, (ck * cds_i - cds_start) / safe, 1.0)
+
+
+def peak_fill_time(t_f, ratio, expopen):
+    """Eq. 15: t_fp = t_f · S^(1/expopen)."""
+    return t_f * ratio ** (1.0 / expopen)
+
+
+def n_p_from_n(n, ratio, expopen):
+    """Eq. 17: fill distance to the peak drag area."""
+    return n * ratio ** (1.0 / expopen)
+
+
+def n_from_n_p(n_p, ratio, expopen):
+    """Eq. 18: fill constant for a simulation given a dispersed n_p."""
+    return n_p * ratio ** (-1.0 / expopen)
+
+
+def stage_drag_area(tau, cds_start, cds_i, t_f, expopen, ck, t_k, decay="linear"):
+    """Drag area ``tau`` seconds after a stage starts (tau ≥ 0).
+
+    All arguments broadcast together. ``t_f`` ≤ 0 means a skipped stage: the
+    drag area is CDS_i at once. ``decay`` is ``"linear"`` or ``"exponential"``.
+    """
+    if decay not in DECAY_SHAPES:
+        raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+    tau = np.asarray(tau, float)
+    cds_i = np.asarray(cds_i, float)
+    filling = t_f > 0
+    safe_tf = np.where(filling, t_f, 1.0)
+    ratio = overinflation_ratio(ck, cds_i, cds_start)
+    t_fp = np.where(filling, peak_fill_time(safe_tf, ratio, expopen), 0.0)
+
+    x = np.clip(tau, 0.0, None) / safe_tf
+    growth = cds_start + (cds_i - cds_start) * x**expopen
+
+    after = np.clip(tau - t_fp, 0.0, None)
+    has_decay = t_k > 0
+    frac = np.where(has_decay, after / np.where(has_decay, t_k, 1.0), 1.0)
+    frac = np.clip(frac, 0.0, 1.0)
+    peak = ck * cds_i
+    if decay == "linear":
+        decayed = peak - (peak - cds_i) * frac
+    else:
+        decayed = peak * np.asarray(ck, float) ** (-frac)
+
+    out = np.where(tau < t_fp, growth, decayed)
+    return np.where(filling, out, cds_i)
+
+
+@dataclass(frozen=True)
+class StageTiming:
+    """Derived quantities of every stage, shape (..., n_stages) each."""
+
+    cds_start: np.ndarray  # drag area held when the stage started
+    t_f: np.ndarray        # fill time, Eq. 14
+    t_fp: np.ndarray       # time from stage start to the peak, Eq. 15
+    n: np.ndarray          # fill constant, Eq. 18
+    n_p: np.ndarray        # fill distance to peak, Eq. 17
+
+
+def _stage_parameters(k, start, cds_stage, n_fill, expopen, ck, t_k):
+    return (start[..., k], cds_stage[..., k], n_fill[..., k], expopen[..., k],
+            ck[..., k], t_k[..., k])
+
+
+def parachute_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen,
+                        ck, t_k, v_start, decay="linear", fill_constant="n_p"):
+    """Drag-area history of one parachute through all its stages.
+
+    Parameters
+    ----------
+    t : array (T,) or broadcastable to (..., T)
+        Times at which to evaluate.
+    start, cds_stage, n_fill, expopen, ck, t_k, v_start : arrays (..., K)
+        Per stage: start time (bag strip or disreef), steady drag area CDS_i,
+        fill constant (``n_p`` or ``n``, see ``fill_constant``), shape
+        exponent, over-inflation factor, decay time and the airspeed at the
+        stage start. Stages must be in time order.
+    cds_o, diameter : arrays (...,)
+        Full-open drag area and nominal diameter D_o.
+
+    Returns
+    -------
+    cds : array (..., T)
+        Zero before the first stage starts.
+    timing : StageTiming
+        Each field (..., K).
+    """
+    if fill_constant not in ("n", "n_p"):
+        raise ValueError("fill_constant must be 'n' or 'n_p'")
+    start, cds_stage, n_fill, expopen, ck, t_k, v_start = np.broadcast_arrays(
+        *(np.asarray(a, float) for a in (start, cds_stage, n_fill, expopen, ck, t_k, v_start)))
+    batch = start.shape[:-1]
+    n_stages = start.shape[-1]
+    cds_o = np.asarray(cds_o, float)[..., None]
+    diameter = np.asarray(diameter, float)[..., None]
+    t = np.asarray(t, float)
+
+    out = np.zeros(np.broadcast_shapes(batch + (1,), t.shape))
+    held = np.zeros(batch)
+    fields = {name: np.zeros(batch + (n_stages,)) for name in ("cds_start", "t_f", "t_fp", "n", "n_p")}
+    for k in range(n_stages):
+        t0, cds_i, fc, expo, c_k, tk = _stage_parameters(k, start, cds_stage, n_fill, expopen, ck, t_k)
+        ratio = overinflation_ratio(c_k, cds_i, held)
+        if fill_constant == "n_p":
+            n_p, n = fc, n_from_n_p(fc, ratio, expo)
+        else:
+            n, n_p = fc, n_p_from_n(fc, ratio, expo)
+        t_f = fill_time(n, diameter[..., 0], held, cds_i, cds_o[..., 0], v_start[..., k])
+        t_fp = np.where(t_f > 0, peak_fill_time(t_f, ratio, expo), 0.0)
+        for name, value in zip(fields, (held, t_f, t_fp, n, n_p)):
+            fields[name][..., k] = value
+
+        stage_args = (held[..., None], cds_i[..., None], t_f[..., None], expo[..., None],
+                      c_k[..., None], tk[..., None])
+        tau = t - t0[..., None]
+        values = stage_drag_area(tau, *stage_args, decay=decay)
+        active = tau >= 0
+        if k + 1 < n_stages:
+            t_next = start[..., k + 1]
+            active = active & (t < t_next[..., None])
+            # Retain-at-disreef: the next stage begins from what is held now.
+            held = stage_drag_area((t_next - t0)[..., None], *stage_args, decay=decay)[..., 0]
+        out = np.where(active, values, out)
+    return out, StageTiming(**fields)
