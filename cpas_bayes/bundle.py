@@ -15,6 +15,7 @@ test's own units, atomically.
 
 from __future__ import annotations
 
+import io
 import math
 import tomllib
 from dataclasses import dataclass, field, replace
@@ -260,10 +261,10 @@ def _read_csv(path):
         raise BundleError(path, "", "file not found",
                           f"a bundle folder needs {TOML_NAME} and {CSV_NAME} (docs/test-bundle.md)")
     try:
-        with path.open(encoding="utf-8") as fh:
-            header = fh.readline().strip()
+        text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise BundleError(path, "", "not UTF-8 text", "save data.csv as UTF-8 CSV") from None
+    header = text.partition("\n")[0].strip()
     names = [h.strip() for h in header.split(",")]
     if not header or not all(names):
         raise BundleError(path, "row 1 (header)", "the header row is missing or has an empty column name",
@@ -273,7 +274,9 @@ def _read_csv(path):
         raise BundleError(path, f"column '{dupes[0]}'", "column name appears more than once",
                           "give every column a unique name")
     try:
-        frame = pd.read_csv(path, dtype=str, skipinitialspace=True, keep_default_na=False)
+        # Blank lines stay rows so that row numbers are file lines; only trailing ones are dropped.
+        frame = pd.read_csv(io.StringIO(text.rstrip("\n")), dtype=str, skipinitialspace=True,
+                            keep_default_na=False, skip_blank_lines=False)
     except (pd.errors.ParserError, ValueError) as exc:
         raise BundleError(path, "", f"not a readable CSV table ({exc})",
                           "make every row have as many comma-separated cells as the header") from None
@@ -298,7 +301,7 @@ def _numeric_column(frame, column, path):
     return values
 
 
-def _sigma(frame, column, sigma_table, path, toml_path):
+def _sigma(frame, column, sigma_table, path):
     """Per-sample sigma of ``column``: its ``<column>_sigma`` or the constant [sigma] entry."""
     name = f"{column}_sigma"
     if name in frame.columns:
@@ -309,11 +312,7 @@ def _sigma(frame, column, sigma_table, path, toml_path):
                               "a 1-sigma is ≥ 0; correct the value")
         return values
     if column in sigma_table:
-        value = sigma_table[column]
-        if not _is_number(value) or not math.isfinite(value) or value < 0:
-            raise BundleError(toml_path, f"key 'sigma.{column}'", f"must be a finite number ≥ 0, got {value!r}",
-                              "give a 1-sigma ≥ 0")
-        return np.full(len(frame), float(value))
+        return np.full(len(frame), float(sigma_table[column]))
     return None
 
 
@@ -347,6 +346,9 @@ def read_bundle(folder) -> FlightTest:
     sigma_table = doc.get("sigma", {})
     if not isinstance(sigma_table, dict):
         reader.fail("sigma", "is not a table", "write constant sigmas as a [sigma] table")
+    for key, value in sigma_table.items():
+        if not _is_number(value) or not math.isfinite(value) or value < 0:
+            reader.fail(f"sigma.{key}", f"must be a finite number ≥ 0, got {value!r}", "give a 1-sigma ≥ 0")
 
     raw = _read_csv(csv_path)
     columns = {}
@@ -358,7 +360,7 @@ def read_bundle(folder) -> FlightTest:
         return _numeric_column(raw, column, csv_path)
 
     def need_sigma(column, canonical):
-        values = _sigma(raw, column, sigma_table, csv_path, toml_path)
+        values = _sigma(raw, column, sigma_table, csv_path)
         if values is None:
             raise BundleError(csv_path, f"column '{column}_sigma'",
                               f"no 1-sigma for '{column}'",
@@ -404,7 +406,7 @@ def read_bundle(folder) -> FlightTest:
                                   "such column",
                                   f"add the column or remove flyout_angle from parachute {p.id!r} in test.toml")
             columns[p.angle_column] = need(p.flyout_angle, f"fly-out angle of {p.id}")
-            sig = _sigma(raw, p.flyout_angle, sigma_table, csv_path, toml_path)
+            sig = _sigma(raw, p.flyout_angle, sigma_table, csv_path)
             columns[f"{p.angle_column}_sigma"] = sig if sig is not None else np.zeros(len(t))
 
     data = pd.DataFrame(columns)
@@ -473,7 +475,7 @@ def write_bundle(test: FlightTest, folder, extra_files=None):
     folder = Path(folder)
     with atomic_directory(folder) as tmp:
         (tmp / TOML_NAME).write_bytes(tomli_w.dumps(_toml_document(test)).encode("utf-8"))
-        bundle_frame(test).to_csv(tmp / CSV_NAME, index=False, float_format="%.9g")
+        bundle_frame(test).to_csv(tmp / CSV_NAME, index=False, float_format="%.15g")
         for name, text in (extra_files or {}).items():
             (tmp / name).write_text(text, encoding="utf-8")
     return folder

@@ -1,0 +1,287 @@
+"""Bundle I/O on the example bundles: reading, SI conversion, round trips, atomic writes
+and every refusal listed in docs/test-bundle.md."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import tomllib
+
+import numpy as np
+import pytest
+
+from cpas_bayes import bundle as bundle_module
+from cpas_bayes.bundle import read_bundle, write_bundle
+from cpas_bayes.errors import BundleError
+from cpas_bayes.units import UNIT_SYSTEMS
+
+DROGUE, MAIN = "drogue-clean", "main-clean"
+EXAMPLES = {DROGUE: (("D3", "D6"), 2, 1601), MAIN: (("M1", "M2", "M3"), 3, 4001)}
+
+# Quantity of each data.csv column that carries a unit; the others (G, gamma, theta, sigmas of
+# those) are load factors or degrees and pass through unchanged.
+COLUMN_QUANTITY = {"qbar": "pressure", "qbar_sigma": "pressure", "airspeed": "speed",
+                   "density": "density", "altitude": "length"}
+
+
+def raw_csv(folder):
+    """data.csv as float columns by header name, parsed with the csv module and float()."""
+    with (folder / "data.csv").open(newline="") as fh:
+        header, *rows = list(csv.reader(fh))
+    return {name: np.array([float(row[i]) for row in rows]) for i, name in enumerate(header)}
+
+
+def raw_toml(folder):
+    with (folder / "test.toml").open("rb") as fh:
+        return tomllib.load(fh)
+
+
+# ---------------------------------------------------------------------------
+# reading and SI conversion
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_example_reads(example_dir, name):
+    ids, n_stages, n_rows = EXAMPLES[name]
+    test = read_bundle(example_dir(name))
+    assert [p.id for p in test.parachutes] == list(ids)
+    assert [len(p.stages) for p in test.parachutes] == [n_stages] * len(ids)
+    assert all(p.stages[-1].label == "full open" for p in test.parachutes)
+    assert len(test.data) == n_rows
+    assert test.units.name == "US"
+    assert test.duration == pytest.approx(0.01 * (n_rows - 1))
+    assert test.sample_rate == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_example_values_are_converted_to_si(example_dir, us_to_si, name):
+    folder = example_dir(name)
+    test, doc, raw = read_bundle(folder), raw_toml(folder), raw_csv(folder)
+    lbf, ft = us_to_si["force"], us_to_si["length"]
+
+    v = test.vehicle
+    assert (v.weight, v.weight_sigma) == pytest.approx(
+        (doc["vehicle"]["weight"] * lbf, doc["vehicle"]["weight_sigma"] * lbf), rel=1e-12)
+    assert (v.cds, v.cds_sigma) == pytest.approx(
+        (doc["vehicle"]["cds"] * ft**2, doc["vehicle"]["cds_sigma"] * ft**2), rel=1e-12)
+    assert test.total_weight == pytest.approx(
+        (doc["vehicle"]["weight"] + sum(e["weight"] for e in doc["parachute"])) * lbf, rel=1e-12)
+
+    expected = {c: raw[c] * us_to_si.get(COLUMN_QUANTITY.get(c), 1.0)
+                for c in ("time", "G", "G_sigma", "qbar", "qbar_sigma", "airspeed", "gamma", "density", "altitude")}
+    for p, entry in zip(test.parachutes, doc["parachute"]):
+        assert (p.diameter, p.weight, p.weight_sigma) == pytest.approx(
+            (entry["diameter"] * ft, entry["weight"] * lbf, entry["weight_sigma"] * lbf), rel=1e-12)
+        assert [(s.label, s.start, s.start_sigma) for s in p.stages] == \
+            [(s["label"], s["start"], s["start_sigma"]) for s in entry["stage"]]
+        expected[f"F_{p.id}"] = raw[entry["load_cell"]] * lbf
+        expected[f"F_{p.id}_sigma"] = raw[entry["load_cell"] + "_sigma"] * lbf
+        if "flyout_angle" in entry:
+            expected[f"theta_{p.id}"] = raw[entry["flyout_angle"]]
+            expected[f"theta_{p.id}_sigma"] = np.zeros(len(test.data))  # no sigma given: 0
+    assert sorted(test.data.columns) == sorted(expected)
+    for column, values in expected.items():
+        np.testing.assert_allclose(test.data[column], values, rtol=1e-12, atol=0, err_msg=column)
+
+
+def test_constant_sigma_table_expands_to_columns(example_dir, bundle_files, us_to_si):
+    folder = example_dir(MAIN)
+    files = bundle_files(folder)
+    for column in ("G_sigma", "qbar_sigma", "F_M2_sigma"):
+        files.drop_column(column)
+    files.set_key("sigma", value={"G": 0.05, "qbar": 0.9, "F_M2": 25.0, "theta_M1": 2.0})
+    test = read_bundle(folder)
+    n = len(test.data)
+    np.testing.assert_array_equal(test.data["G_sigma"], np.full(n, 0.05))
+    np.testing.assert_allclose(test.data["qbar_sigma"], np.full(n, 0.9 * us_to_si["pressure"]), rtol=1e-12)
+    np.testing.assert_allclose(test.data["F_M2_sigma"], np.full(n, 25.0 * us_to_si["force"]), rtol=1e-12)
+    np.testing.assert_array_equal(test.data["theta_M1_sigma"], np.full(n, 2.0))  # degrees, unconverted
+    np.testing.assert_array_equal(test.data["theta_M2_sigma"], np.zeros(n))
+    # Sigma columns still in data.csv are read from there.
+    np.testing.assert_allclose(test.data["F_M1_sigma"], raw_csv(folder)["F_M1_sigma"] * us_to_si["force"],
+                               rtol=1e-12)
+
+
+def test_canonical_column_names_whatever_the_bundle_calls_them(example_dir, bundle_files, tmp_path):
+    original = read_bundle(example_dir(MAIN))
+    folder = example_dir(MAIN, "renamed")
+    files = bundle_files(folder)
+    for old, new in (("F_M1", "LC1"), ("F_M1_sigma", "LC1_sigma"), ("theta_M1", "flyout1")):
+        files.rename_column(old, new)
+    files.set_key("parachute", 0, "load_cell", value="LC1")
+    files.set_key("parachute", 0, "flyout_angle", value="flyout1")
+
+    test = read_bundle(folder)
+    m1 = test.parachute("M1")
+    assert (m1.load_cell, m1.flyout_angle) == ("LC1", "flyout1")
+    assert (m1.load_column, m1.angle_column) == ("F_M1", "theta_M1")
+    assert list(test.data.columns) == list(original.data.columns)
+    assert not {"LC1", "LC1_sigma", "flyout1"} & set(test.data.columns)
+    np.testing.assert_array_equal(test.data.to_numpy(), original.data.to_numpy())
+    assert "LC1" not in test.channels and {"F_M1", "theta_M1"} <= set(test.channels)
+
+    # Written back under the bundle's own names.
+    header = bundle_files(write_bundle(test, tmp_path / "written")).header()
+    assert {"LC1", "LC1_sigma", "flyout1", "flyout1_sigma"} <= set(header)
+    assert "F_M1" not in header and "theta_M1" not in header
+
+
+# ---------------------------------------------------------------------------
+# writing
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_round_trip_in_bundle_units(example_dir, same_test, tmp_path, name):
+    original = read_bundle(example_dir(name))
+    out = write_bundle(original, tmp_path / "out", extra_files={"notes.txt": "written by a test\n"})
+    assert sorted(p.name for p in out.iterdir()) == ["data.csv", "notes.txt", "test.toml"]
+    assert (out / "notes.txt").read_text(encoding="utf-8") == "written by a test\n"
+    assert raw_toml(out)["units"] == "US"
+    same_test(read_bundle(out), original, rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_round_trip_in_si(example_dir, same_test, us_to_si, tmp_path, name):
+    folder = example_dir(name)
+    si = dataclasses.replace(read_bundle(folder), units=UNIT_SYSTEMS["SI"])
+    out = write_bundle(si, tmp_path / "si")
+
+    # On disk the copy really is SI: N, m, Pa.
+    doc, raw, us_doc, us_raw = raw_toml(out), raw_csv(out), raw_toml(folder), raw_csv(folder)
+    assert doc["units"] == "SI"
+    assert doc["vehicle"]["weight"] == pytest.approx(us_doc["vehicle"]["weight"] * us_to_si["force"], rel=1e-12)
+    assert doc["parachute"][0]["diameter"] == pytest.approx(
+        us_doc["parachute"][0]["diameter"] * us_to_si["length"], rel=1e-12)
+    np.testing.assert_allclose(raw["qbar"], us_raw["qbar"] * us_to_si["pressure"], rtol=1e-12)
+    load_cell = doc["parachute"][0]["load_cell"]
+    np.testing.assert_allclose(raw[load_cell], us_raw[load_cell] * us_to_si["force"], rtol=1e-12)
+
+    again = read_bundle(out)
+    same_test(again, si, rtol=1e-9)
+    # ... and an SI bundle round-trips as such.
+    same_test(read_bundle(write_bundle(again, tmp_path / "si-again")), again, rtol=1e-9)
+
+
+def _fail_after_test_toml(monkeypatch, parent):
+    """Make write_bundle fail between writing test.toml and data.csv; return what existed then."""
+    seen = []
+
+    def fail(test):
+        seen.extend(p.name for p in parent.rglob("*"))
+        raise OSError("disk full")
+
+    monkeypatch.setattr(bundle_module, "bundle_frame", fail)
+    return seen
+
+
+def test_failed_write_leaves_nothing(example_dir, monkeypatch, tmp_path):
+    test = read_bundle(example_dir(DROGUE))
+    parent = tmp_path / "out"
+    parent.mkdir()
+    seen = _fail_after_test_toml(monkeypatch, parent)
+    with pytest.raises(OSError, match="disk full"):
+        write_bundle(test, parent / "bundle")
+    assert "test.toml" in seen  # the failure really came midway
+    assert list(parent.iterdir()) == []
+
+
+def test_failed_write_keeps_the_previous_bundle(example_dir, monkeypatch, snapshot, tmp_path):
+    test = read_bundle(example_dir(DROGUE))
+    parent = tmp_path / "out"
+    write_bundle(test, parent / "bundle")
+    before = snapshot(parent)
+    seen = _fail_after_test_toml(monkeypatch, parent)
+    with pytest.raises(OSError, match="disk full"):
+        write_bundle(dataclasses.replace(test, name="changed"), parent / "bundle")
+    assert "test.toml" in seen
+    assert snapshot(parent) == before
+    assert read_bundle(parent / "bundle").name == test.name
+
+
+# ---------------------------------------------------------------------------
+# refusals: one defect planted in a copy of the drogue example (parachutes D3, D6; 2 stages each;
+# row r of data.csv has time (r - 2) * 0.01 s)
+
+
+def _drop_sigma_column_and_set_entry(files):
+    files.drop_column("G_sigma")
+    files.set_key("sigma", "G", value=-0.03)
+
+
+def _insert_blank_line(files):
+    rows = files.read_rows()
+    files.write_rows(rows[:3] + [[""]] + rows[3:])
+
+
+REFUSALS = [
+    # id, defect, file named, place named (None: the file itself), problem named
+    ("missing test.toml", lambda f: f.toml_path.unlink(), "test.toml", None, "file not found"),
+    ("missing data.csv", lambda f: f.csv_path.unlink(), "data.csv", None, "file not found"),
+    *[(f"missing column {c}", lambda f, c=c: f.drop_column(c), "data.csv", f"column '{c}'", "missing column")
+      for c in ("time", "G", "qbar", "airspeed", "gamma")],
+    ("load cell absent from data.csv", lambda f: f.drop_column("F_D6"), "data.csv", "column 'F_D6'",
+     "parachute 'D6' names load_cell 'F_D6' but data.csv has no such column"),
+    ("non-numeric cell", lambda f: f.set_cell(5, "airspeed", "fast"), "data.csv", "row 5, column 'airspeed'",
+     "the cell is not a number ('fast')"),
+    ("empty cell", lambda f: f.set_cell(6, "F_D3_sigma", ""), "data.csv", "row 6, column 'F_D3_sigma'",
+     "the cell is empty"),
+    ("NaN in qbar", lambda f: f.set_cell(7, "qbar", "NaN"), "data.csv", "row 7, column 'qbar'",
+     "is 'NaN', not a finite number"),
+    ("inf in G", lambda f: f.set_cell(20, "G", "inf"), "data.csv", "row 20, column 'G'",
+     "is 'inf', not a finite number"),
+    ("time repeated", lambda f: f.set_cell(50, "time", "0.47"), "data.csv", "row 50, column 'time'",
+     "time not strictly increasing (0.47 then 0.47)"),
+    ("time decreasing", lambda f: f.set_cell(50, "time", "0.465"), "data.csv", "row 50, column 'time'",
+     "time not strictly increasing (0.47 then 0.465)"),
+    ("qbar zero", lambda f: f.set_cell(12, "qbar", "0"), "data.csv", "row 12, column 'qbar'", "qbar = 0.0 ≤ 0"),
+    ("qbar negative", lambda f: f.set_cell(13, "qbar", "-3.5"), "data.csv", "row 13, column 'qbar'",
+     "≤ 0"),
+    ("negative sigma column", lambda f: f.set_cell(9, "G_sigma", "-0.03"), "data.csv",
+     "row 9, column 'G_sigma'", "negative sigma -0.03"),
+    ("negative [sigma] entry", _drop_sigma_column_and_set_entry, "test.toml", "key 'sigma.G'", "≥ 0, got -0.03"),
+    ("negative [sigma] entry beside a sigma column", lambda f: f.set_key("sigma", "qbar", value=-1.0),
+     "test.toml", "key 'sigma.qbar'", "≥ 0, got -1.0"),
+    ("negative sigma key", lambda f: f.set_key("parachute", 1, "weight_sigma", value=-2.0), "test.toml",
+     "key 'parachute 'D6'.weight_sigma'", "a sigma cannot be negative"),
+    ("unknown units", lambda f: f.set_key("units", value="metric"), "test.toml", "key 'units'",
+     "unknown units 'metric'"),
+    ("unknown kind", lambda f: f.set_key("parachute", 0, "kind", value="reserve"), "test.toml",
+     "key 'parachute 'D3'.kind'", "unknown value 'reserve'"),
+    ("unknown inflation", lambda f: f.set_key("parachute", 1, "inflation", value="partial"), "test.toml",
+     "key 'parachute 'D6'.inflation'", "unknown value 'partial'"),
+    ("stages out of order", lambda f: f.set_key("parachute", 1, "stage", 1, "start", value=0.5), "test.toml",
+     "key 'parachute 'D6'.stage[1].start'", "stages out of time order"),
+    ("parachute without stages", lambda f: f.delete_key("parachute", 0, "stage"), "test.toml",
+     "key 'parachute 'D3'.stage'", "parachute 'D3' has no stages"),
+    ("duplicate parachute id", lambda f: f.set_key("parachute", 1, "id", value="D3"), "test.toml",
+     "key 'parachute[1].id'", "duplicate parachute id 'D3'"),
+    ("no sigma for G", lambda f: f.drop_column("G_sigma"), "data.csv", "column 'G_sigma'", "no 1-sigma for 'G'"),
+    ("blank line among the data", _insert_blank_line, "data.csv", "row 4, column 'time'", "the cell is empty"),
+]
+
+
+@pytest.mark.parametrize("defect, file, place, problem", [case[1:] for case in REFUSALS],
+                         ids=[case[0] for case in REFUSALS])
+def test_refusal(example_dir, bundle_files, snapshot, defect, file, place, problem):
+    folder = example_dir(DROGUE)
+    defect(bundle_files(folder))
+    before = snapshot(folder.parent)
+    with pytest.raises(BundleError) as info:
+        read_bundle(folder)
+    message = str(info.value)
+    assert message.startswith(f"{folder / file}{', ' + place if place else ''}: "), message
+    assert problem in message
+    assert ". Fix: " in message
+    assert snapshot(folder.parent) == before
+
+
+def test_trailing_blank_lines_are_not_data(example_dir, bundle_files):
+    folder = example_dir(DROGUE)
+    with bundle_files(folder).csv_path.open("a", encoding="utf-8") as fh:
+        fh.write("\n\n")
+    assert len(read_bundle(folder).data) == EXAMPLES[DROGUE][2]
+
+
+def test_missing_folder_is_refused(tmp_path):
+    with pytest.raises(BundleError, match=r"folder not found\. Fix: "):
+        read_bundle(tmp_path / "nowhere")

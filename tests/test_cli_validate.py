@@ -1,0 +1,132 @@
+"""``cpas-bayes validate`` and ``--version``: summaries of good bundles, one clear message and a
+non-zero exit for a refused one, never a traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from cpas_bayes import __version__
+from cpas_bayes.cli import main
+
+DROGUE, MAIN = "drogue-clean", "main-clean"
+SUMMARY_LINES = {
+    DROGUE: ["EX-drogue  (drogue, US units)",
+             "  1601 samples over 16.00 s at 100.0 Hz",
+             "  D3: drogue, infinite mass, D_o 23; load cell",
+             "      stages: reefed 1 @ 1.038 s, full open @ 9.481 s",
+             "  D6: drogue, infinite mass, D_o 23; load cell",
+             "      stages: reefed 1 @ 1.113 s, full open @ 10.031 s",
+             "  channels: time, G, qbar, airspeed, gamma, density, altitude, F_D3, F_D6"],
+    MAIN: ["EX-main  (main, US units)",
+           "  4001 samples over 40.00 s at 100.0 Hz",
+           "  M1: main, finite mass, D_o 116; load cell, fly-out angle",
+           "      stages: reefed 1 @ 1.185 s, reefed 2 @ 10.839 s, full open @ 21.389 s",
+           "  M3: main, finite mass, D_o 116; load cell, fly-out angle",
+           "  channels: time, G, qbar, airspeed, gamma, density, altitude, F_M1, theta_M1, F_M2, theta_M2, F_M3, "
+           "theta_M3"],
+}
+
+# The issue's check list, planted in a copy of the drogue example: defect, file and place, problem.
+BROKEN = {
+    "missing column": (lambda f: f.drop_column("airspeed"), "data.csv, column 'airspeed'", "missing column"),
+    "NaN in qbar": (lambda f: f.set_cell(7, "qbar", "nan"), "data.csv, row 7, column 'qbar'",
+                    "the cell is 'nan', not a finite number"),
+    "time not increasing": (lambda f: f.set_cell(50, "time", "0.47"), "data.csv, row 50, column 'time'",
+                            "time not strictly increasing"),
+    "unknown units": (lambda f: f.set_key("units", value="imperial"), "test.toml, key 'units'",
+                      "unknown units 'imperial'"),
+    "duplicate parachute id": (lambda f: f.set_key("parachute", 1, "id", value="D3"),
+                               "test.toml, key 'parachute[1].id'", "duplicate parachute id 'D3'"),
+    "stage out of order": (lambda f: f.set_key("parachute", 0, "stage", 1, "start", value=1.0),
+                           "test.toml, key 'parachute 'D3'.stage[1].start'", "stages out of time order"),
+}
+
+
+@pytest.fixture
+def broken(example_dir, bundle_files):
+    """``broken(case)``: a copy of the drogue example with the defect ``BROKEN[case]``; returns its folder."""
+    def make(case):
+        folder = example_dir(DROGUE, case.replace(" ", "-"))
+        BROKEN[case][0](bundle_files(folder))
+        return folder
+    return make
+
+
+def run(capsys, *args):
+    code = main(list(map(str, args)))
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err
+    return code, out, err
+
+
+def test_examples_are_accepted_and_summarised(example_dir, capsys):
+    code, out, err = run(capsys, "validate", example_dir(DROGUE), example_dir(MAIN))
+    assert code == 0
+    assert err == ""
+    lines = out.splitlines()
+    for name, expected in SUMMARY_LINES.items():
+        assert set(expected) <= set(lines), name
+    assert lines.index(SUMMARY_LINES[DROGUE][0]) < lines.index(SUMMARY_LINES[MAIN][0])
+
+
+def test_json_summary(example_dir, capsys):
+    code, out, _ = run(capsys, "validate", "--json", example_dir(MAIN))
+    assert code == 0
+    (summary,) = json.loads(out)
+    assert summary["samples"] == 4001
+    assert summary["duration_s"] == pytest.approx(40.0)
+    assert summary["sample_rate_hz"] == pytest.approx(100.0)
+    assert [p["id"] for p in summary["parachutes"]] == ["M1", "M2", "M3"]
+    assert [s["label"] for s in summary["parachutes"][0]["stages"]] == ["reefed 1", "reefed 2", "full open"]
+    assert "theta_M2" in summary["channels"]
+
+
+@pytest.mark.parametrize("case", BROKEN)
+def test_broken_bundle_is_refused_with_one_message(broken, capsys, case):
+    folder = broken(case)
+    _, place, problem = BROKEN[case]
+    file, _, where = place.partition(", ")
+    code, out, err = run(capsys, "validate", folder)
+    assert code == 2
+    assert out == ""
+    assert err.startswith(f"refused: {folder / file}, {where}: ")
+    assert problem in err
+    assert ". Fix: " in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_every_refusal_is_reported_and_good_bundles_still_summarised(example_dir, broken, capsys):
+    code, out, err = run(capsys, "validate", broken("unknown units"), example_dir(MAIN), broken("stage out of order"))
+    assert code == 2
+    assert SUMMARY_LINES[MAIN][0] in out.splitlines()
+    assert [line.partition(": ")[0] for line in err.splitlines()] == ["refused"] * 2
+    assert "unknown units 'imperial'" in err and "stages out of time order" in err
+
+
+def test_version(capsys):
+    code, out, _ = run(capsys, "--version")
+    assert code == 0
+    assert out.strip() == f"cpas-bayes, version {__version__}"
+
+
+def test_missing_argument_is_a_usage_error(capsys):
+    code, out, err = run(capsys, "validate")
+    assert code == 2
+    assert "Missing argument 'BUNDLES...'" in err
+
+
+def test_as_a_process(example_dir, broken):
+    """The real entry point in a fresh interpreter: a good and a refused bundle, no traceback."""
+    good, bad = example_dir(DROGUE), broken("NaN in qbar")
+    env = {k: v for k, v in os.environ.items() if k != "CPAS_BAYES_DEBUG"}
+    proc = subprocess.run([sys.executable, "-m", "cpas_bayes.cli", "validate", str(good), str(bad)],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert SUMMARY_LINES[DROGUE][1] in proc.stdout.splitlines()
+    assert f"refused: {bad / 'data.csv'}, row 7, column 'qbar': " in proc.stderr
