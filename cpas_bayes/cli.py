@@ -75,6 +75,73 @@ def demo(out):
     click.echo(f"report: {index}")
 
 
+@cli.command("reduce")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for reduced.csv, reduction.json and reduction.png.")
+@click.option("--scale", default="constant", show_default=True, metavar="constant|linear",
+              help="Load-cell friction scale factor: one constant, or a linear trend through the windows.")
+@click.option("--window", "windows", multiple=True, metavar="T0:T1",
+              help="Steady-state calibration window in seconds (repeat for several); replaces the automatic ones.")
+def reduce_command(bundle, out, scale, windows):
+    """Reduce a flight test: parachute loads and drag areas with 1-sigma, friction scale factor, peaks."""
+    from .reduction import parse_window, reduce_test, write_reduction
+
+    test = read_bundle(bundle)
+    chosen = [parse_window(w, test.label) for w in windows] or None
+    red = reduce_test(test, scale=scale, windows=chosen)
+    paths = write_reduction(red, out)
+    u = test.units
+    force = u.label("force")
+    click.echo(f"reduced {test.name} ({u.name} units, {len(test.parachutes)} parachutes)")
+    if red.scale is not None:
+        sc = red.scale
+        per_window = ", ".join(f"{v:.4f} ± {s:.4f} [{a:.2f}–{b:.2f} s]"
+                               for v, s, (a, b) in zip(sc.values, sc.sigma, sc.windows))
+        click.echo(f"  friction scale factor by window ({sc.source}): {per_window}")
+        if sc.mode == "constant":
+            click.echo(f"  applied constant scale factor: {sc.factor:.4f} ± {sc.factor_sigma:.4f}")
+        else:
+            click.echo("  applied linear scale factor through the window midpoints")
+    for pk in red.peaks:
+        acc = pk.accelerometer
+        line = (f"  {pk.stage.label}: peak load accelerometer {u.from_si(acc.load, 'force'):,.0f} ± "
+                f"{u.from_si(acc.sigma, 'force'):,.0f} {force} at {acc.time:.2f} s")
+        if pk.load_cells is not None:
+            lc = pk.load_cells
+            line += (f"; load cells {u.from_si(lc.load, 'force'):,.0f} ± {u.from_si(lc.sigma, 'force'):,.0f} "
+                     f"{force} at {lc.time:.2f} s")
+        click.echo(line)
+    for share in red.load_share:
+        click.echo(f"  {share.stage.label}: mean load share "
+                   + ", ".join(f"{pid} {100 * v:.0f}%" for pid, v in share.mean.items()))
+    for path in paths.values():
+        click.echo(f"wrote {path}")
+
+
+@cli.command("synth")
+@click.option("--scenario", type=click.Choice(["drogue", "main"]), required=True,
+              help="Scenario library entry: two Drogues (infinite mass) or three Mains (finite mass).")
+@click.option("--effect", type=click.Choice(["none", "added_mass", "friction_drift", "sensor_lag",
+                                             "canopy_breathing"]), default="none", show_default=True,
+              help="Hidden effect to put in the data (at most one).")
+@click.option("--magnitude", type=float, default=None,
+              help="Effect size (k_a; friction drop; lag in s; breathing amplitude). Drawn from the seed if omitted.")
+@click.option("--seed", type=int, required=True, help="Seed of the truth, the effect size and the noise.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Bundle folder to write.")
+def synth_command(scenario, effect, magnitude, seed, out):
+    """Simulate a synthetic flight test with known truth and write it as a bundle with truth.json."""
+    from .synth import write_synthetic
+
+    if magnitude is not None and effect == "none":
+        raise click.BadParameter("a magnitude needs an effect other than 'none'", param_hint="--magnitude")
+    try:
+        folder = write_synthetic(scenario, effect, seed, out, magnitude=magnitude)
+    except ValueError as exc:  # an impossible effect size, said plainly
+        raise click.BadParameter(str(exc), param_hint="--magnitude") from None
+    click.echo(f"wrote {folder} ({scenario}, effect {effect}, seed {seed}) with truth.json")
+
+
 # -- commands added by later capabilities go above this line --
 
 

@@ -1,0 +1,1 @@
+"""Figures of the package, one module per capability (Agg backend, no display needed)."""
