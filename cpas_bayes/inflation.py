@@ -188,3 +188,106 @@ def parachute_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen,
             held = stage_drag_area((t_next - t0)[..., None], *stage_args, decay=decay)[..., 0]
         out = np.where(active, values, out)
     return out, StageTiming(**fields)
+
+
+# ---------------------------------------------------------------------------
+# Compiled kernel for the likelihood's hot path.
+#
+# Same law as parachute_drag_area, fused into one loop per (walker, parachute)
+# so that the samples after a stage has settled cost a comparison instead of a
+# power: measured 10-20x faster than the numpy form on a walker batch. The
+# numpy form above stays the reference; tests hold the two equal.
+
+import numba  # noqa: E402
+
+
+@numba.njit(cache=True)
+def _stage_value(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, linear):
+    if t_f <= 0.0:
+        return cds_i
+    if tau < t_fp:
+        x = tau / t_f if tau > 0.0 else 0.0
+        return held + (cds_i - held) * x**expopen
+    if t_k <= 0.0:
+        return cds_i
+    frac = (tau - t_fp) / t_k
+    if frac >= 1.0:
+        return cds_i
+    peak = ck * cds_i
+    if linear:
+        return peak - (peak - cds_i) * frac
+    return peak * ck ** (-frac)
+
+
+@numba.njit(cache=True)
+def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
+                      n_stages, linear, fill_is_np, out, t_f_out, t_fp_out, n_out, held_out):
+    B, P, K = start.shape
+    N = t.shape[1]
+    per_walker_time = t.shape[0] > 1
+    for b in range(B):
+        tb = b if per_walker_time else 0
+        for p in range(P):
+            held = 0.0
+            for k in range(n_stages[p]):
+                cds_i = cds_stage[b, p, k]
+                growth = cds_i - held
+                if growth > 0.0:
+                    ratio = (ck[b, p, k] * cds_i - held) / growth
+                else:
+                    ratio = 1.0
+                r_pow = ratio ** (1.0 / expopen[b, p, k])
+                if fill_is_np:
+                    n = n_fill[b, p, k] / r_pow
+                else:
+                    n = n_fill[b, p, k]
+                if growth > 0.0:
+                    t_f = n * diameter[p] * np.sqrt(growth / cds_o[b, p]) / v_start[b, p, k]
+                else:
+                    t_f = 0.0
+                t_fp = t_f * r_pow if t_f > 0.0 else 0.0
+                t_f_out[b, p, k] = t_f
+                t_fp_out[b, p, k] = t_fp
+                n_out[b, p, k] = n
+                held_out[b, p, k] = held
+                t0 = start[b, p, k]
+                t1 = start[b, p, k + 1] if k + 1 < n_stages[p] else np.inf
+                for i in range(N):
+                    ti = t[tb, i]
+                    if ti >= t0 and ti < t1:
+                        out[b, p, i] = _stage_value(ti - t0, held, cds_i, t_f, t_fp, expopen[b, p, k],
+                                                    ck[b, p, k], t_k[b, p, k], linear)
+                if k + 1 < n_stages[p]:
+                    held = _stage_value(t1 - t0, held, cds_i, t_f, t_fp, expopen[b, p, k],
+                                        ck[b, p, k], t_k[b, p, k], linear)
+
+
+def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
+                      n_stages=None, decay="linear", fill_constant="n_p"):
+    """Compiled :func:`parachute_drag_area` for a cluster: stage arrays (B, P, K), ``cds_o`` (B, P).
+
+    ``t`` is (N,) shared by all rows, or (B, N) one time base per row (for a
+    shifted sensor). ``n_stages`` (P,) gives each parachute's real stage count
+    (extra stage slots are ignored). Returns ``cds`` (B, P, N) and a
+    :class:`StageTiming` with fields (B, P, K).
+    """
+    if decay not in DECAY_SHAPES:
+        raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+    arrays = [np.ascontiguousarray(a, dtype=float) for a in (start, cds_stage, n_fill, expopen, ck, t_k, v_start)]
+    start, cds_stage, n_fill, expopen, ck, t_k, v_start = np.broadcast_arrays(*arrays)
+    B, P, K = start.shape
+    t2 = np.atleast_2d(np.asarray(t, float))
+    cds_o = np.ascontiguousarray(np.broadcast_to(np.asarray(cds_o, float), (B, P)))
+    diameter = np.ascontiguousarray(np.broadcast_to(np.asarray(diameter, float), (P,)))
+    n_stages = np.full(P, K, dtype=np.int64) if n_stages is None else np.asarray(n_stages, dtype=np.int64)
+    out = np.zeros((B, P, t2.shape[1]))
+    fields = [np.zeros((B, P, K)) for _ in range(4)]
+    _drag_area_kernel(np.ascontiguousarray(t2), *(np.ascontiguousarray(a) for a in (start, cds_stage)), cds_o,
+                      diameter, *(np.ascontiguousarray(a) for a in (n_fill, expopen, ck, t_k, v_start)),
+                      n_stages, decay == "linear", fill_constant == "n_p", out, *fields)
+    t_f, t_fp, n, held = fields
+    if fill_constant == "n_p":
+        n_p = np.asarray(n_fill, float)
+    else:
+        n_p = n * np.where(t_f > 0, t_fp / np.where(t_f > 0, t_f, 1.0), 1.0)
+    return out, StageTiming(cds_start=held, t_f=t_f, t_fp=t_fp, n=n, n_p=n_p)

@@ -1,0 +1,416 @@
+"""The forward model and likelihood of one flight test, batched over parameter sets.
+
+A :class:`TestModel` is a set of named parameters with priors and a pipeline
+that turns a batch of parameter vectors θ (B, D) into predicted observations:
+
+1. inflation: each parachute's drag area CDS_i(t) by the stage law
+   (:func:`cpas_bayes.inflation.parachute_drag_area`), V_i = measured airspeed
+   at each sampled stage start;
+2. extensions may reshape CDS_i (e.g. canopy breathing), add an apparent
+   drag area seen by both channels (added mass), change the load-cell
+   friction factor in time, or shift the load-cell time base;
+3. channels: accelerometer drag area, computed by the reduction with the
+   *stated* W_T and CDS_V (Eq. 8)::
+
+       acc = (W_T,stated / W_T) · (Σ CDS_i + CDS_V) − CDS_V,stated
+
+   and each load cell's raw drag area (Eq. 11, before friction scaling)::
+
+       lc_i(t) = [q̄(t−δ)·CDS_i(t−δ) − W_p,i·G(t−δ)] / (s·q̄(t)) + W_p,i·G(t)/q̄(t)
+
+   with s the friction factor (true load / reading) and δ a load-cell lag
+   (0 in the baseline, where lc_i = CDS_i/s + (1 − 1/s)·W_p,i·G/q̄);
+4. noise: independent Gaussian errors with the propagated random 1-sigma
+   times an error multiplier per channel group (``noise_acc``, ``noise_lc``),
+   or what an extension puts in its place (AR(1)).
+
+The baseline is the seed's simulation: individual parachutes, the stage law,
+no added mass, ideal sensors up to the load-cell scale, independent errors.
+Extensions (:mod:`cpas_bayes.extensions`) plug into the hooks of step 2 and 4
+without copying the model.
+
+Parameter names: ``<chute>.cds_o``, ``<chute>.s<k>.<name>`` for stage k (1-based)
+and name in start, n_p, expopen, ck, tk, eps; ``vehicle_weight``,
+``vehicle_cds``, ``load_scale``, ``noise_acc``, ``noise_lc``; extensions add
+their own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .bundle import FlightTest
+from .inflation import cluster_drag_area
+from .observations import Observations
+from .priors import KindPriors, Normal, NuisancePriors, PriorSet, TruncNormal, stage_role
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A named model parameter with its prior."""
+
+    name: str
+    prior: object
+    unit: str = ""
+    group: str = "inflation"
+
+
+@dataclass
+class Prediction:
+    """Predicted observations for a batch: ``acc`` (B, N), ``lc`` (B, L, N), and the parts."""
+
+    acc: np.ndarray
+    lc: np.ndarray
+    cds: np.ndarray               # (B, P, N) drag area of each parachute at the bin times
+    timing: object                # inflation.StageTiming, fields (B, P, K)
+    noise_acc: np.ndarray         # (B,) error multipliers
+    noise_lc: np.ndarray
+
+
+@dataclass
+class Context:
+    """What the pipeline passes to extensions for one batch."""
+
+    model: "TestModel"
+    theta: np.ndarray
+    values: dict                  # parameter name -> (B,) array
+    time: np.ndarray              # (N,) bin times
+    stage: dict = field(default_factory=dict)   # start, cds_stage, ... each (B, P, K)
+
+
+class Extension:
+    """A term added to the baseline model. Override the hooks you need.
+
+    ``parameters(model)`` returns the extension's :class:`Parameter` list. The
+    hooks receive a :class:`Context` and return arrays broadcastable to the
+    shapes named.
+    """
+
+    name = "extension"
+
+    def parameters(self, model):
+        return []
+
+    def reshape_drag_area(self, ctx, cds, t):
+        """Return a modified (B, P, N) drag area evaluated at times ``t``."""
+        return cds
+
+    def apparent_drag_area(self, ctx, t):
+        """Extra drag area (B, P, N) seen by both channels (momentum terms), or None."""
+        return None
+
+    def load_cell_lag(self, ctx):
+        """Load-cell delay behind the IMU time base, s, (B,) or None."""
+        return None
+
+    def friction_factor(self, ctx, t):
+        """Load-cell friction factor (B, N) at times ``t``, or None to keep the constant one."""
+        return None
+
+    def log_likelihood(self, ctx, pred, obs):
+        """Pointwise log-likelihood (B, N) replacing the independent Gaussian, or None."""
+        return None
+
+
+def _stage_names(k):
+    return f"s{k + 1}"
+
+
+class TestModel:
+    """Parameters, priors and batched likelihood of one flight test.
+
+    ``model(theta)`` returns the log posterior for θ (B, D) as emcee's
+    ``vectorize=True`` expects (−inf outside the prior, never NaN).
+    """
+
+    def __init__(self, test: FlightTest, obs: Observations, kind_priors: dict, nuisance: NuisancePriors,
+                 decay="linear", extensions=()):
+        self.test = test
+        self.obs = obs
+        self.decay = decay
+        self.extensions = tuple(extensions)
+        self.kind_priors = kind_priors
+        self.nuisance_priors = nuisance
+        self.parachutes = test.parachutes
+        self.n_chutes = len(test.parachutes)
+        self.n_stages = max(len(p.stages) for p in test.parachutes)
+        self.stages_per_chute = np.array([len(p.stages) for p in test.parachutes])
+        self.parameters = self._build_parameters()
+        self.names = [p.name for p in self.parameters]
+        self.prior_set = PriorSet(p.prior for p in self.parameters)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self._build_gather()
+        self.diameter = np.array([p.diameter for p in test.parachutes])
+        self.area_o = math.pi / 4 * self.diameter**2
+        self.chute_weight = np.array([p.weight for p in test.parachutes])
+        self.stated_total_weight = obs.stated_vehicle_weight + self.chute_weight.sum()
+        self._inv_acc_sigma = 1.0 / obs.acc_sigma
+        self._inv_lc_sigma = 1.0 / obs.lc_sigma
+        self._const_acc = -np.log(obs.acc_sigma).sum() - 0.5 * obs.n_bins * _LOG_2PI
+        self._const_lc = -np.log(obs.lc_sigma).sum() - 0.5 * obs.lc.size * _LOG_2PI
+
+    # -- parameters -------------------------------------------------------
+
+    @property
+    def ndim(self):
+        return len(self.parameters)
+
+    @property
+    def name(self):
+        return "baseline" if not self.extensions else "+".join(e.name for e in self.extensions)
+
+    def _build_parameters(self):
+        params = []
+        test = self.test
+        for p in test.parachutes:
+            kp: KindPriors = self.kind_priors[p.kind]
+            s_o = math.pi / 4 * p.diameter**2
+            cd = kp.parachute["cd_o"]
+            params.append(Parameter(f"{p.id}.cds_o", cd.scaled(s_o), "m²"))
+            n = len(p.stages)
+            for k, st in enumerate(p.stages):
+                role = stage_role(k, n)
+                pre = f"{p.id}.{_stage_names(k)}"
+                params.append(Parameter(f"{pre}.start", Normal(st.start, max(st.start_sigma, 1e-3)), "s"))
+                params.append(Parameter(f"{pre}.n_p", kp.for_stage(role, "n_p")))
+                params.append(Parameter(f"{pre}.expopen", kp.for_stage(role, "expopen")))
+                if p.inflation == "infinite":
+                    params.append(Parameter(f"{pre}.ck", kp.for_stage(role, "ck")))
+                    params.append(Parameter(f"{pre}.tk", kp.for_stage(role, "tk"), "s"))
+                if k < n - 1:
+                    params.append(Parameter(f"{pre}.eps", kp.for_stage(role, "eps")))
+        v = test.vehicle
+        params.append(Parameter("vehicle_weight",
+                                TruncNormal(v.weight, max(v.weight_sigma, 1e-6 * v.weight), 0.5 * v.weight,
+                                            1.5 * v.weight), "N", "nuisance"))
+        params.append(Parameter("vehicle_cds",
+                                TruncNormal(v.cds, max(v.cds_sigma, 1e-3), 0.0, v.cds + 10 * max(v.cds_sigma, 1e-3)),
+                                "m²", "nuisance"))
+        has_lc = any(p.load_cell for p in test.parachutes)
+        params.append(Parameter("noise_acc", self.nuisance_priors["noise_acc"], "", "nuisance"))
+        if has_lc:
+            params.append(Parameter("load_scale", self.nuisance_priors["load_scale"], "", "nuisance"))
+            params.append(Parameter("noise_lc", self.nuisance_priors["noise_lc"], "", "nuisance"))
+        for ext in self.extensions:
+            for prm in ext.parameters(self):
+                params.append(prm)
+        return params
+
+    def _build_gather(self):
+        """Index arrays that gather (B, D) θ into (B, P, K) stage arrays; constants sit past D."""
+        P, K, D = self.n_chutes, self.n_stages, self.ndim
+        constants = {"one": D, "zero": D + 1}
+        self._constants = np.array([1.0, 0.0])
+        gather = {name: np.full((P, K), -1, dtype=int) for name in ("start", "n_p", "expopen", "ck", "tk", "eps")}
+        self.stage_mask = np.zeros((P, K), dtype=bool)
+        for i, p in enumerate(self.parachutes):
+            n = len(p.stages)
+            for k in range(K):
+                kk = min(k, n - 1)  # pad short parachutes by repeating their last stage
+                pre = f"{p.id}.{_stage_names(kk)}"
+                self.stage_mask[i, k] = k < n
+                for name in gather:
+                    key = f"{pre}.{name}"
+                    if key in self.index:
+                        gather[name][i, k] = self.index[key]
+                    elif name == "ck" or name == "eps":
+                        gather[name][i, k] = constants["one"]
+                    elif name == "tk":
+                        gather[name][i, k] = constants["zero"]
+                if k >= n:  # padded stage: starts after the data end, never active
+                    gather["start"][i, k] = -2
+        self._gather = gather
+        self._cds_o_index = np.array([self.index[f"{p.id}.cds_o"] for p in self.parachutes])
+
+    def gather_stages(self, theta):
+        """Stage arrays (B, P, K) from θ (B, D): start, n_p, expopen, ck, tk, eps, cds_stage."""
+        B = theta.shape[0]
+        ext = np.concatenate([theta, np.broadcast_to(self._constants, (B, 2))], axis=1)
+        out = {}
+        for name, idx in self._gather.items():
+            if name == "start":
+                safe = np.where(idx == -2, 0, idx)
+                vals = ext[:, safe]
+                out[name] = np.where(idx == -2, self.obs.native_time[-1] + 1e3, vals)
+            else:
+                out[name] = ext[:, idx]
+        out["cds_o"] = theta[:, self._cds_o_index]
+        out["cds_stage"] = out["eps"] * out["cds_o"][:, :, None]
+        return out
+
+    def values(self, theta):
+        """Named view of θ: {name: (B,)}."""
+        return {n: theta[:, i] for i, n in enumerate(self.names)}
+
+    # -- prior ----------------------------------------------------------------
+
+    def log_prior(self, theta):
+        theta = np.atleast_2d(theta)
+        lp = self.prior_set.logpdf(theta)
+        st = self.gather_stages(theta)["start"]
+        ordered = np.all(np.diff(st, axis=-1) > 0, axis=(-1, -2)) if self.n_stages > 1 else True
+        return np.where(ordered & np.isfinite(lp), lp, -np.inf)
+
+    def sample_prior(self, rng, size):
+        """Draws from the prior (B, D), each column by inverse transform."""
+        return np.column_stack([p.prior.sample(rng, size) for p in self.parameters])
+
+    # -- forward model ------------------------------------------------------
+
+    def drag_areas(self, stage, t):
+        """Per-parachute drag areas (B, P, N) at times ``t`` (N,) or (B, 1, N) and the stage timing."""
+        v_start = self.obs.airspeed_at(stage["start"])
+        if np.ndim(t) == 3:  # (B, 1, N): one time base per row
+            t = t[:, 0, :]
+        return cluster_drag_area(
+            t, stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter,
+            stage["n_p"], stage["expopen"], stage["ck"], stage["tk"], v_start,
+            n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p")
+
+    def predict(self, theta):
+        theta = np.atleast_2d(theta)
+        obs = self.obs
+        values = self.values(theta)
+        stage = self.gather_stages(theta)
+        ctx = Context(self, theta, values, obs.time, stage)
+        t = obs.time
+        cds, timing = self.drag_areas(stage, t)
+        for ext in self.extensions:
+            cds = ext.reshape_drag_area(ctx, cds, t)
+        ctx.stage["timing"] = timing
+        apparent = self._apparent(ctx, t)
+        seen = cds if apparent is None else cds + apparent
+
+        weight_ratio = self.stated_total_weight / (values["vehicle_weight"] + self.chute_weight.sum())
+        cds_v = values["vehicle_cds"]
+        acc = weight_ratio[:, None] * (seen.sum(axis=1) + cds_v[:, None]) - obs.stated_vehicle_cds
+
+        lc = np.empty((theta.shape[0], obs.lc_index.size, t.size))
+        if obs.lc_index.size:
+            lc = self._load_cells(ctx, seen, t)
+        noise_lc = values.get("noise_lc", np.ones(theta.shape[0]))
+        return Prediction(acc=acc, lc=lc, cds=cds, timing=timing,
+                          noise_acc=values["noise_acc"], noise_lc=noise_lc)
+
+    def _apparent(self, ctx, t):
+        total = None
+        for ext in self.extensions:
+            extra = ext.apparent_drag_area(ctx, t)
+            if extra is not None:
+                total = extra if total is None else total + extra
+        return total
+
+    def _load_cells(self, ctx, seen, t):
+        obs = self.obs
+        values = ctx.values
+        B = ctx.theta.shape[0]
+        scale = values["load_scale"][:, None]
+        factor = None
+        for ext in self.extensions:
+            f = ext.friction_factor(ctx, t)
+            if f is not None:
+                factor = f
+        s = scale if factor is None else factor               # (B, 1) or (B, N)
+        lag = None
+        for ext in self.extensions:
+            d = ext.load_cell_lag(ctx)
+            if d is not None:
+                lag = d
+        idx = obs.lc_index
+        weights = self.chute_weight[idx][None, :, None]
+        if lag is None:
+            return seen[:, idx, :] / s[:, None, :] + obs.lc_weight_term[None] * (1.0 - 1.0 / s[:, None, :])
+        # The load cell at t shows the riser at t − δ; its drag area is then formed
+        # with the IMU's q̄(t) and G(t) by the reduction.
+        t_lag = t[None, :] - lag[:, None]                     # (B, N)
+        cds_lag, _ = self.drag_areas(ctx.stage, t_lag[:, None, :])
+        for ext in self.extensions:
+            cds_lag = ext.reshape_drag_area(ctx, cds_lag, t_lag[:, None, :])
+        extra = self._apparent(ctx, t_lag[:, None, :])
+        if extra is not None:
+            cds_lag = cds_lag + extra
+        q_now = obs.qbar_at(t)[None, None, :]
+        q_lag = obs.qbar_at(t_lag)[:, None, :]
+        g_lag = obs.g_at(t_lag)[:, None, :]
+        force = (q_lag * cds_lag[:, idx, :] - weights * g_lag) / s[:, None, :]
+        return force / q_now + obs.lc_weight_term[None]
+
+    # -- likelihood -----------------------------------------------------------
+
+    def pointwise_log_likelihood(self, theta, pred=None, by_channel=False):
+        """Log-likelihood per bin (B, N), summed over channels; per channel if ``by_channel``.
+
+        With ``by_channel`` returns ``(acc (B, N), lc (B, L, N))``.
+        """
+        theta = np.atleast_2d(theta)
+        pred = self.predict(theta) if pred is None else pred
+        ctx = Context(self, theta, self.values(theta), self.obs.time)
+        for ext in self.extensions:
+            ll = ext.log_likelihood(ctx, pred, self.obs)
+            if ll is not None:
+                return ll
+        obs = self.obs
+        s_acc = pred.noise_acc[:, None] * obs.acc_sigma[None, :]
+        r_acc = (obs.acc[None, :] - pred.acc) / s_acc
+        ll_acc = -0.5 * r_acc**2 - np.log(s_acc) - 0.5 * _LOG_2PI
+        if obs.lc_index.size:
+            s_lc = pred.noise_lc[:, None, None] * obs.lc_sigma[None]
+            r_lc = (obs.lc[None] - pred.lc) / s_lc
+            ll_lc = -0.5 * r_lc**2 - np.log(s_lc) - 0.5 * _LOG_2PI
+        else:
+            ll_lc = np.zeros((theta.shape[0], 0, obs.n_bins))
+        if by_channel:
+            return ll_acc, ll_lc
+        return ll_acc + ll_lc.sum(axis=1)
+
+    def log_likelihood(self, theta):
+        """Total log-likelihood (B,). The Gaussian case needs only χ² per channel group:
+
+        Σ log N(y | ŷ, λσ) = −½·χ²/λ² − N·log λ − Σ log σ − ½·N·log 2π
+        """
+        theta = np.atleast_2d(theta)
+        pred = self.predict(theta)
+        if any(type(ext).log_likelihood is not Extension.log_likelihood for ext in self.extensions):
+            return self.pointwise_log_likelihood(theta, pred).sum(axis=1)
+        obs = self.obs
+        chi2_acc = np.square((obs.acc[None, :] - pred.acc) * self._inv_acc_sigma).sum(axis=1)
+        ll = -0.5 * chi2_acc / pred.noise_acc**2 - obs.n_bins * np.log(pred.noise_acc) + self._const_acc
+        if obs.lc_index.size:
+            chi2_lc = np.square((obs.lc[None] - pred.lc) * self._inv_lc_sigma).sum(axis=(1, 2))
+            ll += -0.5 * chi2_lc / pred.noise_lc**2 - obs.lc.size * np.log(pred.noise_lc) + self._const_lc
+        return ll
+
+    def log_posterior(self, theta):
+        theta = np.atleast_2d(theta)
+        lp = self.log_prior(theta)
+        out = np.full(theta.shape[0], -np.inf)
+        ok = np.isfinite(lp)
+        if ok.any():
+            ll = self.log_likelihood(theta[ok])
+            out[ok] = np.where(np.isfinite(ll), lp[ok] + ll, -np.inf)
+        return out
+
+    __call__ = log_posterior
+
+    # -- derived quantities ------------------------------------------------------
+
+    def derived(self, theta):
+        """Per-stage derived quantities {name: (B,)}: n (Eq. 18), eps, cds, t_f, t_fp."""
+        theta = np.atleast_2d(theta)
+        stage = self.gather_stages(theta)
+        _, timing = self.drag_areas(stage, self.obs.time[:1])
+        out = {}
+        for i, p in enumerate(self.parachutes):
+            for k in range(len(p.stages)):
+                pre = f"{p.id}.{_stage_names(k)}"
+                out[f"{pre}.n"] = timing.n[:, i, k]
+                out[f"{pre}.eps"] = stage["eps"][:, i, k]
+                out[f"{pre}.cds"] = stage["cds_stage"][:, i, k]
+                out[f"{pre}.t_f"] = timing.t_f[:, i, k]
+                out[f"{pre}.t_fp"] = timing.t_fp[:, i, k]
+        return out
