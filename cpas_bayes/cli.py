@@ -142,6 +142,38 @@ def synth_command(scenario, effect, magnitude, seed, out):
     click.echo(f"wrote {folder} ({scenario}, effect {effect}, seed {seed}) with truth.json")
 
 
+@cli.command("fit")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for the fit's outputs.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the MAP starts and the sampler.")
+@click.option("--priors", type=click.Path(path_type=Path), default=None,
+              help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
+@click.option("--decay", type=click.Choice(["linear", "exponential"]), default="linear", show_default=True,
+              help="Shape of the drag-area decay after the over-inflation peak.")
+@click.option("--workers", type=int, default=2, show_default=True, help="Processes running ensembles at once.")
+@click.option("--ensembles", type=int, default=4, show_default=True, help="Independent emcee ensembles (R-hat).")
+def fit_command(bundle, out, seed, priors, decay, workers, ensembles):
+    """Posterior of every inflation parameter of one flight test (emcee).
+
+    Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
+    resumable checkpoints in OUT/checkpoint/ (rerun the same command to resume).
+    """
+    from .bundle import read_bundle
+    from .fit import SamplerOptions, fit_test
+    from .plots.fit import write_fit_figures
+
+    test = read_bundle(bundle)
+    options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
+    click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}")
+    fit = fit_test(test, options, out=out, priors=priors, decay=decay, echo=click.echo)
+    figures = write_fit_figures(fit, out)
+    d = fit.summary["diagnostics"]
+    click.echo(f"{'converged' if d['converged'] else 'NOT converged'}: R-hat max {d['rhat_max']:.4f}, "
+               f"ESS bulk min {d['ess_bulk_min']:.0f}, tau max {d['tau_max']:.0f} steps, "
+               f"acceptance {d['acceptance']:.2f}")
+    click.echo(f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {len(figures)} figures")
+
+
 # -- commands added by later capabilities go above this line --
 
 

@@ -273,21 +273,21 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     """
     if decay not in DECAY_SHAPES:
         raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
-    arrays = [np.ascontiguousarray(a, dtype=float) for a in (start, cds_stage, n_fill, expopen, ck, t_k, v_start)]
-    start, cds_stage, n_fill, expopen, ck, t_k, v_start = np.broadcast_arrays(*arrays)
+    start = np.ascontiguousarray(start, dtype=float)
     B, P, K = start.shape
-    t2 = np.atleast_2d(np.asarray(t, float))
+    stage = [np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), (B, P, K)))
+             for a in (cds_stage, n_fill, expopen, ck, t_k, v_start)]
+    t2 = np.ascontiguousarray(np.atleast_2d(np.asarray(t, float)))
     cds_o = np.ascontiguousarray(np.broadcast_to(np.asarray(cds_o, float), (B, P)))
     diameter = np.ascontiguousarray(np.broadcast_to(np.asarray(diameter, float), (P,)))
     n_stages = np.full(P, K, dtype=np.int64) if n_stages is None else np.asarray(n_stages, dtype=np.int64)
     out = np.zeros((B, P, t2.shape[1]))
     fields = [np.zeros((B, P, K)) for _ in range(4)]
-    _drag_area_kernel(np.ascontiguousarray(t2), *(np.ascontiguousarray(a) for a in (start, cds_stage)), cds_o,
-                      diameter, *(np.ascontiguousarray(a) for a in (n_fill, expopen, ck, t_k, v_start)),
-                      n_stages, decay == "linear", fill_constant == "n_p", out, *fields)
+    _drag_area_kernel(t2, start, stage[0], cds_o, diameter, *stage[1:], n_stages, decay == "linear",
+                      fill_constant == "n_p", out, *fields)
     t_f, t_fp, n, held = fields
     if fill_constant == "n_p":
-        n_p = np.asarray(n_fill, float)
+        n_p = stage[1]
     else:
         n_p = n * np.where(t_f > 0, t_fp / np.where(t_f > 0, t_f, 1.0), 1.0)
     return out, StageTiming(cds_start=held, t_f=t_f, t_fp=t_fp, n=n, n_p=n_p)
