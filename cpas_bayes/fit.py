@@ -58,7 +58,7 @@ class SamplerOptions:
     store_every: int = 5              # keep every k-th step in the chain file
     tau_factor: float = 50.0          # converged when steps > tau_factor·τ ...
     tau_rtol: float = 0.05            # ... and τ moved less than this since the last check
-    map_starts: int = 6
+    map_starts: int = 4
     workers: int = 2
     progress: bool = True
 

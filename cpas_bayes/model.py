@@ -20,9 +20,17 @@ that turns a batch of parameter vectors θ (B, D) into predicted observations:
 
    with s the friction factor (true load / reading) and δ a load-cell lag
    (0 in the baseline, where lc_i = CDS_i/s + (1 − 1/s)·W_p,i·G/q̄);
-4. noise: independent Gaussian errors with the propagated random 1-sigma
-   times an error multiplier per channel group (``noise_acc``, ``noise_lc``),
-   or what an extension puts in its place (AR(1)).
+4. noise: Gaussian errors, independent from one time bin to the next; within a
+   bin the channels share the measured q̄'s error (both Eq. 8 and Eq. 11 divide
+   by it), so their covariance is Λ·(D + u·uᵀ)·Λ with D the independent
+   variances, u the q̄ part of each channel's 1-sigma and Λ the error
+   multipliers per channel group (``noise_acc``, ``noise_lc``). With
+   r̃ = r/λ, Sherman–Morrison gives per bin::
+
+       r̃ᵀ(D + uuᵀ)⁻¹r̃ = Σ r̃_c²/d_c² − (Σ r̃_c·u_c/d_c²)² / (1 + Σ u_c²/d_c²)
+       log det = Σ log d_c² + log(1 + Σ u_c²/d_c²) + 2·Σ log λ_c
+
+   An extension may replace this (AR(1) errors).
 
 The baseline is the seed's simulation: individual parachutes, the stage law,
 no added mass, ideal sensors up to the load-cell scale, independent errors.
@@ -128,6 +136,8 @@ class TestModel:
     ``vectorize=True`` expects (−inf outside the prior, never NaN).
     """
 
+    __test__ = False  # a flight *test* model, not a pytest class
+
     def __init__(self, test: FlightTest, obs: Observations, kind_priors: dict, nuisance: NuisancePriors,
                  decay="linear", extensions=()):
         self.test = test
@@ -149,10 +159,15 @@ class TestModel:
         self.area_o = math.pi / 4 * self.diameter**2
         self.chute_weight = np.array([p.weight for p in test.parachutes])
         self.stated_total_weight = obs.stated_vehicle_weight + self.chute_weight.sum()
-        self._inv_acc_sigma = 1.0 / obs.acc_sigma
-        self._inv_lc_sigma = 1.0 / obs.lc_sigma
-        self._const_acc = -np.log(obs.acc_sigma).sum() - 0.5 * obs.n_bins * _LOG_2PI
-        self._const_lc = -np.log(obs.lc_sigma).sum() - 0.5 * obs.lc.size * _LOG_2PI
+        self._w_acc = 1.0 / obs.acc_sigma**2
+        self._w_lc = 1.0 / obs.lc_sigma**2
+        self._a_acc = obs.acc_qbar * self._w_acc
+        self._a_lc = obs.lc_qbar * self._w_lc
+        self._denom = 1.0 + obs.acc_qbar * self._a_acc + (obs.lc_qbar * self._a_lc).sum(axis=0)
+        n_channels = 1 + obs.lc.shape[0]
+        # Parameter-free part of log N per bin: −½·log det(D + uuᵀ) − ½·C·log 2π.
+        self._ll_const = -0.5 * (np.log(obs.acc_sigma**2) + np.log(obs.lc_sigma**2).sum(axis=0)
+                                 + np.log(self._denom) + n_channels * _LOG_2PI)
 
     # -- parameters -------------------------------------------------------
 
@@ -342,10 +357,26 @@ class TestModel:
 
     # -- likelihood -----------------------------------------------------------
 
-    def pointwise_log_likelihood(self, theta, pred=None, by_channel=False):
-        """Log-likelihood per bin (B, N), summed over channels; per channel if ``by_channel``.
+    def _quadratic_form(self, theta, pred):
+        """Per-bin r̃ᵀ(D + uuᵀ)⁻¹r̃ (B, N) and the per-channel parts of its diagonal."""
+        obs = self.obs
+        r_acc = (obs.acc[None, :] - pred.acc) / pred.noise_acc[:, None]
+        r_lc = (obs.lc[None] - pred.lc) / pred.noise_lc[:, None, None]
+        shared = r_acc * self._a_acc + (r_lc * self._a_lc).sum(axis=1)
+        diag_acc = r_acc**2 * self._w_acc
+        diag_lc = r_lc**2 * self._w_lc
+        return diag_acc + diag_lc.sum(axis=1) - shared**2 / self._denom, r_acc, r_lc
 
-        With ``by_channel`` returns ``(acc (B, N), lc (B, L, N))``.
+    def _log_multipliers(self, pred):
+        """Σ_c log λ_c per bin (B,): one accelerometer channel and L load cells."""
+        return np.log(pred.noise_acc) + self.obs.lc.shape[0] * np.log(pred.noise_lc)
+
+    def pointwise_log_likelihood(self, theta, pred=None, by_channel=False):
+        """Log-likelihood per time bin (B, N), all channels jointly.
+
+        With ``by_channel`` returns ``(acc (B, N), lc (B, L, N))``: each channel's
+        *marginal* log density (variance λ²·(d² + u²)), for per-channel diagnostics;
+        their sum is not the joint value because of the shared q̄ error.
         """
         theta = np.atleast_2d(theta)
         pred = self.predict(theta) if pred is None else pred
@@ -353,37 +384,29 @@ class TestModel:
         for ext in self.extensions:
             ll = ext.log_likelihood(ctx, pred, self.obs)
             if ll is not None:
+                if by_channel:
+                    raise ValueError(f"the {ext.name} error model has no per-channel log-likelihood; "
+                                     "ask for the joint one (by_channel=False)")
                 return ll
         obs = self.obs
-        s_acc = pred.noise_acc[:, None] * obs.acc_sigma[None, :]
-        r_acc = (obs.acc[None, :] - pred.acc) / s_acc
-        ll_acc = -0.5 * r_acc**2 - np.log(s_acc) - 0.5 * _LOG_2PI
-        if obs.lc_index.size:
-            s_lc = pred.noise_lc[:, None, None] * obs.lc_sigma[None]
-            r_lc = (obs.lc[None] - pred.lc) / s_lc
-            ll_lc = -0.5 * r_lc**2 - np.log(s_lc) - 0.5 * _LOG_2PI
-        else:
-            ll_lc = np.zeros((theta.shape[0], 0, obs.n_bins))
         if by_channel:
+            var_acc = pred.noise_acc[:, None] ** 2 * (obs.acc_sigma**2 + obs.acc_qbar**2)
+            var_lc = pred.noise_lc[:, None, None] ** 2 * (obs.lc_sigma**2 + obs.lc_qbar**2)
+            ll_acc = -0.5 * ((obs.acc - pred.acc) ** 2 / var_acc + np.log(var_acc) + _LOG_2PI)
+            ll_lc = -0.5 * ((obs.lc - pred.lc) ** 2 / var_lc + np.log(var_lc) + _LOG_2PI)
             return ll_acc, ll_lc
-        return ll_acc + ll_lc.sum(axis=1)
+        quad, _, _ = self._quadratic_form(theta, pred)
+        return -0.5 * quad - self._log_multipliers(pred)[:, None] + self._ll_const
 
     def log_likelihood(self, theta):
-        """Total log-likelihood (B,). The Gaussian case needs only χ² per channel group:
-
-        Σ log N(y | ŷ, λσ) = −½·χ²/λ² − N·log λ − Σ log σ − ½·N·log 2π
-        """
+        """Total log-likelihood (B,), the sum of :meth:`pointwise_log_likelihood` over bins."""
         theta = np.atleast_2d(theta)
         pred = self.predict(theta)
         if any(type(ext).log_likelihood is not Extension.log_likelihood for ext in self.extensions):
             return self.pointwise_log_likelihood(theta, pred).sum(axis=1)
-        obs = self.obs
-        chi2_acc = np.square((obs.acc[None, :] - pred.acc) * self._inv_acc_sigma).sum(axis=1)
-        ll = -0.5 * chi2_acc / pred.noise_acc**2 - obs.n_bins * np.log(pred.noise_acc) + self._const_acc
-        if obs.lc_index.size:
-            chi2_lc = np.square((obs.lc[None] - pred.lc) * self._inv_lc_sigma).sum(axis=(1, 2))
-            ll += -0.5 * chi2_lc / pred.noise_lc**2 - obs.lc.size * np.log(pred.noise_lc) + self._const_lc
-        return ll
+        quad, _, _ = self._quadratic_form(theta, pred)
+        return (-0.5 * quad.sum(axis=1) - self.obs.n_bins * self._log_multipliers(pred)
+                + self._ll_const.sum())
 
     def log_posterior(self, theta):
         theta = np.atleast_2d(theta)

@@ -10,6 +10,15 @@ load-cell friction factor), so their uncertainty is not counted once per
 sample, which would let a constant offset pose as thousands of independent
 errors.
 
+Shared q̄ error: Eq. 8 and Eq. 11 both divide by the same measured q̄, so its
+error moves every channel of a sample together (by −y·Δq̄/q̄). The random
+1-sigma is therefore split into an independent part per channel (``*_sigma``)
+and the q̄ part (``*_qbar``), a vector common to the channels of a bin; the
+likelihood uses the covariance diag(σ²) + u·uᵀ per bin. Counting the q̄ error
+once per channel, as independent errors would, overstates what two load cells
+and an accelerometer seeing the same q̄ know about a shared feature such as
+simultaneous disreefs.
+
 Binning: samples are averaged in bins where nothing changes fast (steady
 stages), and kept at full rate around every stage start, where fill times of a
 few tenths of a second live. A bin's value is the mean of its samples, its
@@ -42,13 +51,17 @@ class Observations:
     area (F_i·cos θ_i + W_p,i·G)/q̄ without friction scaling (Eq. 11, 13);
     ``lc_weight_term`` (L, N) = W_p,i·G/q̄, which the friction factor does not
     scale. ``lc_index`` maps each load cell row to its parachute's position.
+    ``acc_sigma``/``lc_sigma`` are the independent random parts, ``acc_qbar``/
+    ``lc_qbar`` the shared q̄ part (see the module docstring).
     """
 
     time: np.ndarray
     acc: np.ndarray
     acc_sigma: np.ndarray
+    acc_qbar: np.ndarray
     lc: np.ndarray
     lc_sigma: np.ndarray
+    lc_qbar: np.ndarray
     lc_weight_term: np.ndarray
     lc_index: np.ndarray
     samples_per_bin: np.ndarray
@@ -121,6 +134,12 @@ def _bin_sigma(sigma, edges):
     return np.sqrt(np.add.reduceat(sigma**2, edges[:-1], axis=-1)) / np.diff(edges)
 
 
+def _independent_part(total, shared):
+    """sqrt(σ² − u²): what is left of a random 1-sigma once the shared q̄ part is taken out."""
+    # A floor of 1 % of the total keeps a channel whose error is all q̄ from a zero sigma.
+    return np.sqrt(np.maximum(total**2 - shared**2, (0.01 * total) ** 2))
+
+
 def build_observations(test: FlightTest, reduced, native_rate=False) -> Observations:
     """Observations from a test and its reduction frame (SI, see :mod:`cpas_bayes.reduction`)."""
     edges = bin_edges(test, native_rate)
@@ -128,10 +147,16 @@ def build_observations(test: FlightTest, reduced, native_rate=False) -> Observat
     d = test.data
     g = d["G"].to_numpy()
     q = d["qbar"].to_numpy()
-    lc = np.array([reduced[f"cds_{test.parachutes[i].id}_raw"].to_numpy() for i in lc_chutes]).reshape(-1, len(d))
-    lc_sig = np.array([reduced[f"cds_{test.parachutes[i].id}_raw_sigma_random"].to_numpy()
-                       for i in lc_chutes]).reshape(-1, len(d))
-    weight_term = np.array([test.parachutes[i].weight * g / q for i in lc_chutes]).reshape(-1, len(d))
+    q_rel = d["qbar_sigma"].to_numpy() / q
+    n = len(d)
+    acc = reduced["cds_total"].to_numpy()
+    acc_rand = reduced["cds_total_sigma_random"].to_numpy()
+    acc_q = q_rel * (acc + test.vehicle.cds)              # ∂(Eq. 8)/∂q̄ · Δq̄
+    lc = np.array([reduced[f"cds_{test.parachutes[i].id}_raw"].to_numpy() for i in lc_chutes]).reshape(-1, n)
+    lc_rand = np.array([reduced[f"cds_{test.parachutes[i].id}_raw_sigma_random"].to_numpy()
+                        for i in lc_chutes]).reshape(-1, n)
+    lc_q = q_rel * lc                                      # ∂(Eq. 11)/∂q̄ · Δq̄
+    weight_term = np.array([test.parachutes[i].weight * g / q for i in lc_chutes]).reshape(-1, n)
     if "density" in d:
         density = d["density"].to_numpy()
     else:
@@ -139,10 +164,12 @@ def build_observations(test: FlightTest, reduced, native_rate=False) -> Observat
         density = standard_atmosphere(d["altitude"].to_numpy())[0] if "altitude" in d else 2 * q / d["airspeed"].to_numpy() ** 2
     return Observations(
         time=_bin_mean(test.time, edges),
-        acc=_bin_mean(reduced["cds_total"].to_numpy(), edges),
-        acc_sigma=_bin_sigma(reduced["cds_total_sigma_random"].to_numpy(), edges),
+        acc=_bin_mean(acc, edges),
+        acc_sigma=_bin_sigma(_independent_part(acc_rand, acc_q), edges),
+        acc_qbar=_bin_sigma(np.abs(acc_q), edges),
         lc=_bin_mean(lc, edges),
-        lc_sigma=_bin_sigma(lc_sig, edges),
+        lc_sigma=_bin_sigma(_independent_part(lc_rand, lc_q), edges),
+        lc_qbar=_bin_sigma(np.abs(lc_q), edges),
         lc_weight_term=_bin_mean(weight_term, edges),
         lc_index=np.asarray(lc_chutes, dtype=int),
         samples_per_bin=np.diff(edges),

@@ -127,7 +127,7 @@ def _subset_indices(n_chains, n_draws, budget):
     return np.arange(n_draws - 1, -1, -step)[::-1]
 
 
-def build_datatree(model, sampling, rng, loglik_budget=2000, predictive_budget=400):
+def build_datatree(model, sampling, rng, budget=1000):
     """The ArviZ DataTree of a fit: posterior (+ derived), stats, pointwise log-likelihood,
     posterior predictive, observed and constant data."""
     import arviz as az
@@ -143,18 +143,23 @@ def build_datatree(model, sampling, rng, loglik_budget=2000, predictive_budget=4
 
     obs = model.obs
     lc_ids = [model.parachutes[i].id for i in obs.lc_index]
-    ll_idx = _subset_indices(n_chain, n_draw, loglik_budget)
+    # One subset of draws serves log_likelihood and posterior_predictive, so that
+    # LOO-PIT lines them up; it is a thinned copy of the posterior's draws.
+    ll_idx = _subset_indices(n_chain, n_draw, budget)
     sub = chains[:, ll_idx, :].reshape(-1, chains.shape[-1])
     pred = _predict_in_batches(model, sub)
     ll_acc, ll_lc = model.pointwise_log_likelihood(sub, pred, by_channel=True)
     total = model.pointwise_log_likelihood(sub, pred)
     shape = (n_chain, ll_idx.size)
-    pp_idx = _subset_indices(n_chain, n_draw, predictive_budget)
-    keep = np.isin(ll_idx, pp_idx)
-    acc_pp = (pred.acc + pred.noise_acc[:, None] * obs.acc_sigma * rng.standard_normal(pred.acc.shape))
-    lc_pp = (pred.lc + pred.noise_lc[:, None, None] * obs.lc_sigma * rng.standard_normal(pred.lc.shape))
-    acc_pp = acc_pp.reshape(shape + acc_pp.shape[1:])[:, keep]
-    lc_pp = lc_pp.reshape(shape + lc_pp.shape[1:])[:, keep]
+    # Replicated data with the likelihood's error structure: independent parts plus
+    # one shared q̄ draw per bin.
+    shared = rng.standard_normal(pred.acc.shape)
+    acc_pp = pred.acc + pred.noise_acc[:, None] * (obs.acc_sigma * rng.standard_normal(pred.acc.shape)
+                                                   + obs.acc_qbar * shared)
+    lc_pp = pred.lc + pred.noise_lc[:, None, None] * (obs.lc_sigma * rng.standard_normal(pred.lc.shape)
+                                                      + obs.lc_qbar * shared[:, None, :])
+    acc_pp = acc_pp.reshape(shape + acc_pp.shape[1:])
+    lc_pp = lc_pp.reshape(shape + lc_pp.shape[1:])
 
     coords = {"chain": np.arange(n_chain), "time": obs.time, "load_cell": lc_ids}
     tree = az.from_dict(
@@ -167,17 +172,19 @@ def build_datatree(model, sampling, rng, loglik_budget=2000, predictive_budget=4
             "posterior_predictive": {"acc": acc_pp, "lc": lc_pp},
             "observed_data": {"acc": obs.acc, "lc": obs.lc},
             "constant_data": {"acc_sigma": obs.acc_sigma, "lc_sigma": obs.lc_sigma,
+                              "acc_qbar": obs.acc_qbar, "lc_qbar": obs.lc_qbar,
                               "samples_per_bin": obs.samples_per_bin},
         },
         coords=coords,
         dims={"acc": ["time"], "lc": ["load_cell", "time"], "total": ["time"],
-              "acc_sigma": ["time"], "lc_sigma": ["load_cell", "time"], "samples_per_bin": ["time"]},
+              "acc_sigma": ["time"], "lc_sigma": ["load_cell", "time"], "acc_qbar": ["time"],
+              "lc_qbar": ["load_cell", "time"], "samples_per_bin": ["time"]},
         check_conventions=False,
     )
     # Draw coordinates name the stored step, so subsets line up with the posterior.
     for group in ("log_likelihood",):
         tree[group] = tree[group].to_dataset().assign_coords(draw=ll_idx)
-    tree["posterior_predictive"] = tree["posterior_predictive"].to_dataset().assign_coords(draw=ll_idx[keep])
+    tree["posterior_predictive"] = tree["posterior_predictive"].to_dataset().assign_coords(draw=ll_idx)
     tree["posterior"] = tree["posterior"].to_dataset().assign_coords(ensemble=("chain", ensemble))
     tree.attrs.update({"test": model.test.name, "model": model.name, "decay": model.decay})
     return tree

@@ -516,3 +516,22 @@ def n_p_consistency(truth_doc: dict) -> float:
             worst = max(worst, abs(n - s["n"]) / s["n"])
             held = s["cds_end"]
     return worst
+
+
+def truth_parameter_values(test: FlightTest, truth_doc: dict) -> dict:
+    """The true value of every baseline model parameter, by model parameter name, in SI.
+
+    Maps truth.json (bundle units) onto :class:`cpas_bayes.model.TestModel`'s
+    names: ``<id>.cds_o``, ``<id>.s<k>.{start,n_p,n,expopen,ck,tk,eps}``,
+    ``vehicle_weight``, ``vehicle_cds``, ``load_scale``. Used to check recovery.
+    """
+    u = test.units
+    out = {"vehicle_weight": u.si(truth_doc["vehicle_weight"], "force"),
+           "vehicle_cds": u.si(truth_doc["vehicle_cds"], "area"),
+           "load_scale": float(truth_doc["load_scale"])}
+    for c in truth_doc["chutes"]:
+        out[f"{c['id']}.cds_o"] = u.si(c["cds_o"], "area")
+        for k, s in enumerate(c["stages"]):
+            for name in ("start", "n_p", "n", "expopen", "ck", "tk", "eps"):
+                out[f"{c['id']}.s{k + 1}.{name}"] = float(s[name])
+    return out

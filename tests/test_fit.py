@@ -1,0 +1,119 @@
+"""Posterior sampling: MAP, resumable checkpoints, and recovery of known truth.
+
+Recovery tests fit synthetic tests (known truth, fixed seeds) and the two
+independent example bundles, and count how many true values fall inside the
+90 % equal-tailed posterior intervals.
+
+Tolerance. Nominal coverage is 0.90. The parameters of one stage (start, n_p,
+expopen, C_k, t_k) are strongly correlated, so their misses come together: the
+effective number of independent intervals is about a third of the count. For
+~160 intervals that gives a binomial sd of about 0.04 on the coverage, and the
+accepted band [0.80, 0.98] is ±2.5 sd: a sampler that is overconfident by 30 %
+in width (coverage ≈ 0.75) fails it, chance does not.
+"""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from cpas_bayes.bundle import example_bundles, read_bundle
+from cpas_bayes.fit import (SamplerOptions, find_map, first_guess, fit_model, fit_test, laplace_covariance,
+                            prepare_model, run_ensemble, initial_walkers)
+from cpas_bayes.synth import synthesize, truth_parameter_values
+
+COVERAGE_BAND = (0.80, 0.98)
+
+
+def _coverage(fit, truth):
+    post = fit.tree["posterior"]
+    inside = []
+    for name in fit.model.names:
+        if name in truth:
+            x = np.asarray(post[name].values).ravel()
+            lo, hi = np.quantile(x, [0.05, 0.95])
+            inside.append(lo <= truth[name] <= hi)
+    return np.array(inside)
+
+
+@pytest.fixture(scope="module")
+def drogue_example():
+    path = next(p for p in example_bundles() if p.name.startswith("drogue"))
+    test = read_bundle(path)
+    return test, prepare_model(test), truth_parameter_values(test, json.loads((path / "truth.json").read_text()))
+
+
+def test_map_is_a_maximum_near_the_truth(drogue_example):
+    _, model, truth = drogue_example
+    theta_true = np.array([truth.get(n, 1.0) for n in model.names])
+    theta_map, lp_map = find_map(model, np.random.default_rng(0), starts=3)
+    assert lp_map >= model(theta_true[None])[0]
+    assert lp_map >= model(first_guess(model)[None])[0]
+    # The Laplace sd puts the truth within a few sigma of the MAP for every parameter.
+    sd = np.sqrt(np.diag(laplace_covariance(model, theta_map)))
+    z = (theta_map - theta_true) / sd
+    sampled = [i for i, n in enumerate(model.names) if n in truth]
+    assert np.max(np.abs(z[sampled])) < 4.0
+    assert np.sqrt(np.mean(z[sampled] ** 2)) < 1.6
+
+
+def test_killed_run_resumes_to_the_same_chain(drogue_example, tmp_path):
+    """A run stopped after its first chunk (as a kill would leave it) resumes bit for bit."""
+    _, model, _ = drogue_example
+    theta_map, _ = find_map(model, np.random.default_rng(0), starts=1)
+    init = initial_walkers(model, theta_map, laplace_covariance(model, theta_map), 2 * model.ndim + 2,
+                           np.random.default_rng(1))
+    whole = SamplerOptions(max_steps=1000, check_every=250, tau_factor=1e9)
+    first_part = SamplerOptions(max_steps=250, check_every=250, tau_factor=1e9)
+    uninterrupted = run_ensemble(model, init, 5, whole, checkpoint=None)
+    ckpt = tmp_path / "ensemble_0.h5"
+    run_ensemble(model, init, 5, first_part, checkpoint=ckpt)
+    assert not ckpt.with_name(ckpt.name + ".partial").exists()
+    resumed = run_ensemble(model, init, 5, whole, checkpoint=ckpt)
+    assert resumed.steps == uninterrupted.steps == 1000
+    np.testing.assert_array_equal(resumed.draws, uninterrupted.draws)
+    # A checkpoint of another model or seed is refused, not silently mixed in.
+    with pytest.raises(Exception, match="belongs to another model"):
+        run_ensemble(model, init, 6, SamplerOptions(max_steps=500, check_every=250, seed=9), checkpoint=ckpt)
+
+
+@pytest.mark.slow
+def test_recovery_on_synthetic_drogue_and_main_tests():
+    covered, z_all = [], []
+    cases = [("drogue", s) for s in range(11, 17)] + [("main", s) for s in (21, 22)]
+    for scenario, seed in cases:
+        test, truth_doc = synthesize(scenario, "none", seed)
+        truth = truth_parameter_values(test, truth_doc)
+        fit = fit_model(prepare_model(test), SamplerOptions(seed=seed, n_ensembles=2, workers=1, progress=False))
+        inside = _coverage(fit, truth)
+        covered.append(inside)
+        post = fit.tree["posterior"]
+        z_all += [(truth[n] - float(post[n].mean())) / float(post[n].std()) for n in fit.model.names if n in truth]
+    coverage = np.concatenate(covered).mean()
+    assert COVERAGE_BAND[0] <= coverage <= COVERAGE_BAND[1], f"coverage {coverage:.3f}"
+    # Standardised errors of a calibrated posterior have unit rms.
+    assert 0.7 < np.sqrt(np.mean(np.square(z_all))) < 1.3
+
+
+@pytest.mark.slow
+def test_independent_examples_converge_and_cover_the_truth(tmp_path):
+    covered = []
+    for path in example_bundles():
+        test = read_bundle(path)
+        truth = truth_parameter_values(test, json.loads((path / "truth.json").read_text()))
+        fit = fit_test(test, SamplerOptions(seed=0, workers=2, progress=False), out=tmp_path / path.name)
+        d = fit.summary["diagnostics"]
+        assert d["converged"] and d["rhat_max"] < 1.01 and d["ess_bulk_min"] >= 400, d
+        per = fit.summary["diagnostics_per_parameter"]
+        assert all(v["rhat"] < 1.01 and v["ess_bulk"] >= 400 for v in per.values())
+        covered.append(_coverage(fit, truth))
+        # The written summary follows the documented schema.
+        summary = json.loads((tmp_path / path.name / "summary.json").read_text())
+        stage = next(iter(summary["parachutes"].values()))["stages"][0]
+        assert {"label", "start", "n_p", "n", "expopen", "cds", "eps"} <= set(stage)
+        assert set(stage["n_p"]) == {"mean", "sd", "q05", "q50", "q95"}
+        assert {"converged", "rhat_max", "ess_bulk_min", "tau_max", "acceptance"} <= set(summary["diagnostics"])
+    coverage = np.concatenate(covered).mean()
+    assert 0.85 <= coverage <= 0.97, f"coverage {coverage:.3f}"
+    shutil.rmtree(tmp_path, ignore_errors=True)

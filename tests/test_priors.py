@@ -1,0 +1,114 @@
+"""Priors: densities against scipy, batched evaluation, TOML files and their refusals."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from cpas_bayes.errors import InputError
+from cpas_bayes.priors import (PRIORS_DIR, LogNormal, Normal, PriorSet, TruncNormal, Uniform, load_kind_priors,
+                               load_nuisance_priors, prior_from_table, stage_role)
+
+PRIORS = [
+    (Uniform(0.1, 0.9), stats.uniform(0.1, 0.8)),
+    (Normal(1.0, 0.2), stats.norm(1.0, 0.2)),
+    (TruncNormal(1.25, 0.25, 1.0, 2.5), stats.truncnorm(-1.0, 5.0, loc=1.25, scale=0.25)),
+    (LogNormal(10.0, 0.5), stats.lognorm(0.5, scale=10.0)),
+]
+
+
+@pytest.mark.parametrize("prior,reference", PRIORS)
+def test_logpdf_and_ppf_match_scipy(prior, reference):
+    x = reference.ppf(np.linspace(0.01, 0.99, 41))
+    np.testing.assert_allclose(prior.logpdf(x), reference.logpdf(x), rtol=1e-10, atol=1e-10)
+    u = np.linspace(0.02, 0.98, 17)
+    np.testing.assert_allclose(prior.ppf(u), reference.ppf(u), rtol=1e-9)
+
+
+def test_truncated_lognormal_is_normalised_on_its_bounds():
+    prior = LogNormal(10.0, 0.5, low=2.0, high=50.0)
+    grid = np.linspace(2.0, 50.0, 200001)
+    mass = np.trapezoid(np.exp(prior.logpdf(grid)), grid)
+    assert mass == pytest.approx(1.0, abs=1e-6)
+    assert prior.logpdf(np.array([1.9, 50.1])).tolist() == [-np.inf, -np.inf]
+    draws = prior.sample(np.random.default_rng(0), 5000)
+    assert draws.min() >= 2.0 and draws.max() <= 50.0
+
+
+def test_scaled_prior_is_the_density_of_the_scaled_variable():
+    cd = TruncNormal(0.6, 0.1, 0.3, 1.0)
+    area = 38.6
+    cds = cd.scaled(area)
+    x = np.linspace(0.35, 0.95, 13)
+    # p_cds(a·x) = p_cd(x) / a
+    np.testing.assert_allclose(cds.logpdf(area * x), cd.logpdf(x) - math.log(area), rtol=1e-12)
+
+
+def test_prior_set_equals_sum_of_priors_and_refuses_outside_support():
+    priors = [p for p, _ in PRIORS] + [LogNormal(0.5, 0.7, 0.02, 5.0), TruncNormal(5.0, 1.0, 0.0, 20.0)]
+    rng = np.random.default_rng(1)
+    theta = np.column_stack([p.sample(rng, 50) for p in priors])
+    expected = sum(p.logpdf(theta[:, i]) for i, p in enumerate(priors))
+    np.testing.assert_allclose(PriorSet(priors).logpdf(theta), expected, rtol=1e-12)
+    theta[3, 0] = 0.95   # outside Uniform(0.1, 0.9)
+    theta[7, 3] = -1.0   # negative for a lognormal
+    out = PriorSet(priors).logpdf(theta)
+    assert out[3] == -np.inf and out[7] == -np.inf
+    assert np.isfinite(np.delete(out, [3, 7])).all()
+
+
+@pytest.mark.parametrize("kind", ["drogue", "main", "pilot", "fbcp"])
+def test_every_kind_file_loads_with_all_roles(kind):
+    kp = load_kind_priors(kind)
+    for role in ("first", "reefed", "full_open"):
+        assert {"n_p", "expopen", "ck", "tk"} <= set(kp.stage[role])
+    assert "eps" in kp.stage["first"] and "eps" in kp.stage["reefed"]
+    assert "cd_o" in kp.parachute
+    assert (PRIORS_DIR / f"{kind}.toml").is_file()
+
+
+def test_stage_roles():
+    assert [stage_role(k, 3) for k in range(3)] == ["first", "reefed", "full_open"]
+    assert [stage_role(k, 2) for k in range(2)] == ["first", "full_open"]
+    assert stage_role(0, 1) == "full_open"
+
+
+def test_override_file_replaces_only_the_tables_it_gives(tmp_path):
+    override = tmp_path / "mine.toml"
+    override.write_text('kind = "drogue"\n[first]\nn_p = { family = "normal", mu = 12.0, sigma = 1.0 }\n'
+                        '[nuisance]\nload_scale = { family = "uniform", low = 1.0, high = 1.3 }\n')
+    base, mine = load_kind_priors("drogue"), load_kind_priors("drogue", override)
+    assert mine.stage["first"]["n_p"] == Normal(12.0, 1.0)
+    assert mine.stage["first"]["expopen"] == base.stage["first"]["expopen"]
+    assert mine.stage["full_open"]["n_p"] == base.stage["full_open"]["n_p"]
+    assert str(override) in mine.source
+    # An override for another kind leaves this kind alone.
+    assert load_kind_priors("main", override).stage["first"]["n_p"] == load_kind_priors("main").stage["first"]["n_p"]
+    assert load_nuisance_priors(override)["load_scale"] == Uniform(1.0, 1.3)
+
+
+@pytest.mark.parametrize("table,fragment", [
+    ({"family": "gamma", "a": 1.0}, "unknown family"),
+    ({"family": "normal", "mu": 1.0}, "sigma"),
+    ({"family": "normal", "mu": 1.0, "sigma": -2.0}, "must be positive"),
+    ({"family": "uniform", "low": 2.0, "high": 1.0}, "must be below high"),
+    ({"family": "normal", "mu": "one", "sigma": 1.0}, "must be a number"),
+    ({"family": "lognormal", "median": 1.0, "sigma_log": 0.5, "mode": 2.0}, "unexpected numbers"),
+    ({"mu": 1.0}, "family"),
+])
+def test_bad_prior_tables_are_refused_with_file_key_and_fix(table, fragment):
+    with pytest.raises(InputError) as err:
+        prior_from_table(table, "priors/mine.toml", "first.n_p")
+    message = str(err.value)
+    assert message.startswith("priors/mine.toml, key 'first.n_p")
+    assert fragment in message and "Fix:" in message
+
+
+def test_unknown_parameter_in_a_file_is_refused(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('kind = "drogue"\n[first]\nfill_distance = { family = "normal", mu = 1.0, sigma = 1.0 }\n')
+    with pytest.raises(InputError, match=r"key 'first.fill_distance'.*unknown stage parameter"):
+        load_kind_priors("drogue", bad)
+    with pytest.raises(InputError, match="prior file not found"):
+        load_kind_priors("drogue", tmp_path / "missing.toml")
