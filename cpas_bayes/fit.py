@@ -108,6 +108,9 @@ def first_guess(model: TestModel):
     obs = model.obs
     theta = np.array([p.prior.ppf(0.5) for p in model.parameters], dtype=float)
     idx = model.index
+    for ext in model.extensions:
+        for name, value in ext.initial_values(model).items():
+            theta[idx[name]] = value
     t = obs.time
     total_late = np.median(obs.acc[t > t[-1] - 0.15 * (t[-1] - t[0])]) + obs.stated_vehicle_cds
     lc_rows = {int(c): r for r, c in enumerate(obs.lc_index)}

@@ -104,6 +104,10 @@ class Extension:
     def parameters(self, model):
         return []
 
+    def initial_values(self, model):
+        """Starting values {name: value} for the MAP search (default: prior medians)."""
+        return {}
+
     def reshape_drag_area(self, ctx, cds, t):
         """Return a modified (B, P, N) drag area evaluated at times ``t``."""
         return cds
@@ -295,9 +299,9 @@ class TestModel:
         ctx = Context(self, theta, values, obs.time, stage)
         t = obs.time
         cds, timing = self.drag_areas(stage, t)
+        ctx.stage["timing"] = timing
         for ext in self.extensions:
             cds = ext.reshape_drag_area(ctx, cds, t)
-        ctx.stage["timing"] = timing
         apparent = self._apparent(ctx, t)
         seen = cds if apparent is None else cds + apparent
 
@@ -338,10 +342,12 @@ class TestModel:
                 lag = d
         idx = obs.lc_index
         weights = self.chute_weight[idx][None, :, None]
+        baseline = seen[:, idx, :] / s[:, None, :] + obs.lc_weight_term[None] * (1.0 - 1.0 / s[:, None, :])
         if lag is None:
-            return seen[:, idx, :] / s[:, None, :] + obs.lc_weight_term[None] * (1.0 - 1.0 / s[:, None, :])
-        # The load cell at t shows the riser at t − δ; its drag area is then formed
-        # with the IMU's q̄(t) and G(t) by the reduction.
+            return baseline
+        # The load cell at t shows the riser at t − δ, while the reduction forms its drag
+        # area with the IMU's q̄(t) and G(t). Added to the baseline as the change of the
+        # modelled riser force over the lag, so δ = 0 is the baseline exactly.
         t_lag = t[None, :] - lag[:, None]                     # (B, N)
         cds_lag, _ = self.drag_areas(ctx.stage, t_lag[:, None, :])
         for ext in self.extensions:
@@ -350,10 +356,9 @@ class TestModel:
         if extra is not None:
             cds_lag = cds_lag + extra
         q_now = obs.qbar_at(t)[None, None, :]
-        q_lag = obs.qbar_at(t_lag)[:, None, :]
-        g_lag = obs.g_at(t_lag)[:, None, :]
-        force = (q_lag * cds_lag[:, idx, :] - weights * g_lag) / s[:, None, :]
-        return force / q_now + obs.lc_weight_term[None]
+        force_lag = obs.qbar_at(t_lag)[:, None, :] * cds_lag[:, idx, :] - weights * obs.g_at(t_lag)[:, None, :]
+        force_now = q_now * seen[:, idx, :] - weights * obs.g_at(t)[None, None, :]
+        return baseline + (force_lag - force_now) / (s[:, None, :] * q_now)
 
     # -- likelihood -----------------------------------------------------------
 

@@ -71,6 +71,7 @@ class Observations:
     native_qbar: np.ndarray       # Pa
     native_g: np.ndarray          # load factor, smoothed
     native_density: np.ndarray    # kg/m³
+    native_gamma: np.ndarray      # flight-path angle, rad
     stated_vehicle_weight: float
     stated_vehicle_cds: float
 
@@ -89,6 +90,9 @@ class Observations:
 
     def density_at(self, t):
         return np.interp(t, self.native_time, self.native_density)
+
+    def gamma_at(self, t):
+        return np.interp(t, self.native_time, self.native_gamma)
 
 
 def _moving_average(x, width):
@@ -178,6 +182,7 @@ def build_observations(test: FlightTest, reduced, native_rate=False) -> Observat
         native_qbar=_moving_average(q, 5),
         native_g=_moving_average(g, 5),
         native_density=density,
+        native_gamma=np.radians(d["gamma"].to_numpy()),
         stated_vehicle_weight=test.vehicle.weight,
         stated_vehicle_cds=test.vehicle.cds,
     )

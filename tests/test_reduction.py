@@ -527,3 +527,22 @@ def test_cli_bad_option_writes_nothing(tmp_path, capsys, args):
     err = capsys.readouterr().err
     assert "--scale" in err or "--window" in err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("scenario,seed", [("drogue", 5), ("main", 6)])
+def test_synthetic_bundles_reduce_to_their_true_drag_areas(tmp_path, scenario, seed):
+    """Our own simulator's bundles, through the file format: scaled drag areas match truth within sigma."""
+    from cpas_bayes.synth import write_synthetic
+
+    folder = write_synthetic(scenario, "none", seed, tmp_path / scenario)
+    test = read_bundle(folder)
+    truth = json.loads((folder / "truth.json").read_text())
+    truth_cds = _truth_drag_areas(test, truth)
+    r = red.reduce_test(test)
+    mask = _steady_mask(test, truth_cds)
+    assert mask.sum() > 500
+    for p in test.parachutes:
+        z = (r.frame[f"cds_{p.id}"].to_numpy() - truth_cds[p.id]["cds"]) / r.frame[f"cds_{p.id}_sigma"].to_numpy()
+        assert 0.8 <= float(z[mask].std()) <= 1.25, f"{scenario} {p.id}: sd {z[mask].std():.3f}"
+        assert abs(float(z[mask].mean())) < 0.5
+    assert abs(r.scale.factor - truth["load_scale"]) < 3 * r.scale.factor_sigma

@@ -1,0 +1,82 @@
+"""Model extensions: neutral at zero size, and each explains its own simulated effect."""
+
+import numpy as np
+import pytest
+
+from cpas_bayes.extensions import EXTENSIONS, PHYSICAL, make_extension
+from cpas_bayes.fit import prepare_model
+from cpas_bayes.reduction import reduce_test
+from cpas_bayes.synth import synthesize, truth_parameter_values
+
+NEUTRAL = {"k_a": 0.0, "load_scale_change": 0.0, "lag": 0.0, "breathing_amplitude": 0.0,
+           "breathing_frequency": 1.0, "breathing_damping": 0.2}
+
+
+def _true_extension_values(effect, params):
+    """The simulator's effect parameters in the extension's terms."""
+    if effect == "added_mass":
+        return {"k_a": params["k_a"]}
+    if effect == "friction_drift":
+        return {"load_scale_change": params["scale_end"] - params["scale_start"],
+                "load_scale": 0.5 * (params["scale_end"] + params["scale_start"])}
+    if effect == "sensor_lag":
+        return {"lag": params["lag"]}
+    return {"breathing_amplitude": params["amplitude"], "breathing_frequency": params["frequency_hz"],
+            "breathing_damping": params["damping_ratio"]}
+
+
+@pytest.fixture(scope="module")
+def clean_drogue():
+    test, truth = synthesize("drogue", "none", 7)
+    return test, reduce_test(test), truth_parameter_values(test, truth)
+
+
+@pytest.mark.parametrize("name", PHYSICAL)
+def test_a_zero_size_extension_is_the_baseline(clean_drogue, name):
+    test, reduction, truth = clean_drogue
+    base = prepare_model(test, reduction=reduction)
+    ext = prepare_model(test, reduction=reduction, extensions=[make_extension(name)])
+    theta_base = np.array([truth.get(n, 1.0) for n in base.names])
+    theta_ext = np.array([truth.get(n, NEUTRAL.get(n, 1.0)) for n in ext.names])
+    assert ext.log_likelihood(theta_ext[None])[0] == pytest.approx(base.log_likelihood(theta_base[None])[0],
+                                                                   rel=1e-10)
+
+
+def test_ar1_with_no_memory_is_the_per_channel_likelihood(clean_drogue):
+    test, reduction, truth = clean_drogue
+    base = prepare_model(test, reduction=reduction)
+    ar = prepare_model(test, reduction=reduction, extensions=[make_extension("correlated_noise")])
+    theta = np.array([truth.get(n, 1.0) for n in base.names])[None]
+    theta_ar = np.array([truth.get(n, 1e-9 if n == "ar_time" else 1.0) for n in ar.names])[None]
+    acc, lc = base.pointwise_log_likelihood(theta, by_channel=True)
+    expected = acc.sum() + lc.sum()
+    assert ar.log_likelihood(theta_ar)[0] == pytest.approx(expected, rel=1e-10)
+    with pytest.raises(ValueError, match="no per-channel log-likelihood"):
+        ar.pointwise_log_likelihood(theta_ar, by_channel=True)
+
+
+@pytest.mark.parametrize("scenario", ["drogue", "main"])
+@pytest.mark.parametrize("effect", PHYSICAL)
+def test_each_extension_explains_its_own_effect_and_no_other(scenario, effect):
+    """At the simulator's truth, the matching extension raises the likelihood by far more than any other."""
+    test, truth_doc = synthesize(scenario, effect, 7)
+    reduction = reduce_test(test)
+    truth = truth_parameter_values(test, truth_doc)
+    base = prepare_model(test, reduction=reduction)
+    baseline = base.log_likelihood(np.array([truth.get(n, 1.0) for n in base.names])[None])[0]
+    gains = {}
+    for name in PHYSICAL:
+        model = prepare_model(test, reduction=reduction, extensions=[make_extension(name)])
+        values = dict(truth, **NEUTRAL)
+        if name == effect:
+            values.update(_true_extension_values(effect, truth_doc["effect_params"]))
+        theta = np.array([values.get(n, 1.0) for n in model.names])[None]
+        gains[name] = model.log_likelihood(theta)[0] - baseline
+    assert gains[effect] > 500, gains
+    assert all(gains[effect] > 20 * max(abs(g), 1.0) for n, g in gains.items() if n != effect), gains
+
+
+def test_unknown_extension_is_refused():
+    with pytest.raises(ValueError, match="unknown extension"):
+        make_extension("wake_recontact")
+    assert set(EXTENSIONS) == set(PHYSICAL) | {"correlated_noise"}
