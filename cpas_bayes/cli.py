@@ -174,6 +174,130 @@ def fit_command(bundle, out, seed, priors, decay, workers, ensembles):
     click.echo(f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {len(figures)} figures")
 
 
+@cli.command("montecarlo")
+@click.option("--memo", "memo_path", type=click.Path(path_type=Path), required=True,
+              help="memo.toml (or its folder) with the population distributions.")
+@click.option("--like", "like", type=click.Path(path_type=Path), required=True,
+              help="Bundle whose configuration (parachutes, vehicle, initial state, cutter times) is flown.")
+@click.option("--runs", type=click.IntRange(min=1), default=10000, show_default=True, help="Monte Carlo runs.")
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for runs.csv, summary.json, peak_loads.png and fill_times.png.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every draw.")
+@click.option("--mode", type=click.Choice(["n_p", "n"]), default="n_p", show_default=True,
+              help="Disperse n_p and derive n per run (Eq. 18), or disperse n itself (the old way).")
+@click.option("--independent", is_flag=True,
+              help="Draw every parameter independently from its memo distribution instead of resampling the "
+                   "joint population draws.")
+@click.option("--compare-np", "compare_np", is_flag=True,
+              help="Also run both modes with independent parameters and write np_vs_n.json and "
+                   "fill_time_np_vs_n.png (peak fill times outside the tested range).")
+@click.option("--batch", type=click.IntRange(min=1), default=None, help="Runs simulated at once (default 1000).")
+def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, compare_np, batch):
+    """Monte Carlo peak loads and fill times of a test's cluster with parameters from the model memo."""
+    import numpy as np
+
+    from .memo import load_memo
+    from .montecarlo import (compare_fill_time_dispersion, run_monte_carlo, write_fill_time_comparison,
+                             write_monte_carlo)
+
+    memo = load_memo(memo_path)
+    test = read_bundle(like)
+    rng = np.random.default_rng(seed)
+    result = run_monte_carlo(memo, test, runs, rng, mode=mode, joint=not independent, batch=batch)
+    extra = {"seed": seed, "memo_path": str(memo_path), "like_path": str(like)}
+    paths = write_monte_carlo(result, out, memo=memo, extra=extra)
+    force = test.units.label("force")
+    click.echo(f"{runs:,} runs of {test.name} ({mode} dispersed, "
+               f"{'independent parameters' if independent else 'joint population draws'}) in "
+               f"{result.runtime_s:.1f} s ({result.runs_per_second:,.0f} runs/s, {result.engine} engine)")
+    for stage in result.summary()["stages"]:
+        q = stage["peak_load"]
+        if q:
+            click.echo(f"  {stage['stage']}: peak load median {q['q50']:,.0f} {force}, "
+                       f"99 % {q['q99']:,.0f} {force}")
+    if compare_np:
+        comparison = compare_fill_time_dispersion(memo, test, runs, rng, batch=batch)
+        paths.update({f"np_vs_n {k}": v for k, v in write_fill_time_comparison(comparison, out, extra).items()})
+        for g in comparison.groups:
+            click.echo(f"  {g.kind} {g.stage}: t_fp outside the tested range {100 * g.fraction_outside('n_p'):.1f} % "
+                       f"(n_p dispersed) vs {100 * g.fraction_outside('n'):.1f} % (n dispersed)")
+    for path in paths.values():
+        click.echo(f"wrote {path}")
+
+
+@cli.command("compare")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@click.option("--memo", "memo_path", type=click.Path(path_type=Path), default=None,
+              help="memo.toml: compare with the population predictive (Monte Carlo of this configuration).")
+@click.option("--fit", "fit_path", type=click.Path(path_type=Path), default=None,
+              help="Fit folder of this test: compare with its posterior predictive.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for compare.json and compare.png.")
+@click.option("--runs", type=click.IntRange(min=1), default=2000, show_default=True,
+              help="Predicted runs per source.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every draw.")
+@click.option("--mode", type=click.Choice(["n_p", "n"]), default="n_p", show_default=True,
+              help="Fill constant dispersed in the memo Monte Carlo.")
+@click.option("--independent", is_flag=True, help="Memo Monte Carlo with independently drawn parameters.")
+def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independent):
+    """Measured peak loads against predicted distributions, with the measurement's sigma."""
+    import numpy as np
+
+    from .compare import compare_loads, write_comparison
+    from .memo import load_memo
+    from .posterior import load_fit
+
+    if memo_path is None and fit_path is None:
+        raise click.UsageError("give --memo, --fit or both")
+    test = read_bundle(bundle)
+    memo = load_memo(memo_path) if memo_path is not None else None
+    fit = load_fit(fit_path) if fit_path is not None else None
+    comparison = compare_loads(test, memo=memo, fit=fit, runs=runs, rng=np.random.default_rng(seed), mode=mode,
+                               joint=not independent)
+    paths = write_comparison(comparison, out, extra={"seed": seed})
+    u = test.units
+    for c in comparison.comparisons:
+        click.echo(f"  {c.stage_label} {c.channel} vs {c.source}: measured {u.from_si(c.measured, 'force'):,.0f} ± "
+                   f"{u.from_si(c.sigma, 'force'):,.0f} {u.label('force')}, percentile {c.percentile:.1f}, "
+                   f"P(prediction > measurement) {c.p_exceed:.2f}")
+    for path in paths.values():
+        click.echo(f"wrote {path}")
+
+
+@cli.command("pool")
+@click.argument("fitdirs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Memo folder: memo.toml, memo_draws.csv, memo.md and figures.")
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Seed of the subsampling, hyper-posterior and population-predictive draws.")
+def pool_command(fitdirs, out, seed):
+    """Pool fitted tests into population dispersions: the model memo.
+
+    Per parachute kind and stage: n_p, n, expopen, ck, tk, eps and cd_o get a
+    family chosen by leave-one-test-out predictive density, a hyper-posterior
+    and population-predictive draws; n_p and expopen keep their correlation
+    when it predicts better. Fit folders are those written by 'cpas-bayes fit'.
+    """
+    import warnings
+
+    from .pool import PoolWarning, pool_folders, write_pool
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PoolWarning)
+        result = pool_folders(fitdirs, seed=seed)
+        paths = write_pool(result, out)
+    for w in caught:
+        if issubclass(w.category, PoolWarning):
+            click.secho(f"warning: {w.message}", fg="yellow", err=True)
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    click.echo(f"pooled {len(result.tests)} tests ({', '.join(result.tests)}) into {len(result.entries)} entries")
+    for (kind, stage), pair in sorted(result.pairs.items()):
+        click.echo(f"  {kind} {stage}: rho(n_p, expopen) {pair.rho_median:.2f} "
+                   f"[{pair.rho_interval[0]:.2f}, {pair.rho_interval[1]:.2f}], "
+                   f"{'kept' if pair.keep else 'not kept'} (delta elpd {pair.elpd_diff:+.2f})")
+    click.echo(f"wrote {paths['memo']}, {paths['draws']}, {paths['markdown']} and {len(paths['figures'])} figures")
+
+
 # -- commands added by later capabilities go above this line --
 
 
