@@ -207,7 +207,12 @@ def convergence(tree, sampling, rhat_max=1.01, ess_min=400):
     post = tree["posterior"]
     names = list(sampling.names)
     superchains = np.asarray(post["ensemble"].values)
-    rhat = az.rhat_nested(tree, var_names=names, superchain_ids=superchains)
+    if len(set(superchains.tolist())) > 1:
+        rhat = az.rhat_nested(tree, var_names=names, superchain_ids=superchains)
+    else:
+        # One ensemble: no independent chains to compare; walker-chain R-hat is the
+        # best available (optimistic, since walkers share the ensemble's moves).
+        rhat = az.rhat(tree, var_names=names)
     ess_bulk = az.ess(tree, var_names=names, method="bulk")
     ess_tail = az.ess(tree, var_names=names, method="tail")
 

@@ -164,7 +164,7 @@ def plot_bands(fit, pred):
             _zoom(ax, t, first - before, last + after, acc_bands, acc_data)
             ax.set_title(f"cluster stage {row}: the sum of the individual fills", fontsize=9)
     fig.suptitle(f"{model.test.name}: reconstructed drag areas — the posterior bands of the model (its "
-                 "uncertainty, not the noise) should run through the middle of the points, fill, peak and decay "
+                 "uncertainty, not the noise)\nshould run through the middle of the points, fill, peak and decay "
                  "included; lower rows zoom on each fill", fontsize=10)
     return fig
 
