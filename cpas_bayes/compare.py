@@ -56,7 +56,7 @@ from scipy import special
 
 from .bundle import FlightTest
 from .errors import InputError
-from .fileio import save_figure, write_json
+from .fileio import write_json_and_figure
 from .memo import Memo
 from .montecarlo import (ClusterLayout, MonteCarloResult, assemble_inputs, choose_engine, describe,
                          ensure_compiled, json_safe, run_monte_carlo, simulate_runs)
@@ -309,18 +309,11 @@ def compare_loads(test: FlightTest, memo: Memo | None = None, fit: FitRecord | N
 
 def write_comparison(comparison: LoadComparison, out, extra=None):
     """Write compare.json and compare.png into ``out`` (atomically); return their paths."""
-    import matplotlib.pyplot as plt
-
     from .plots.montecarlo import plot_load_comparison
 
     out = Path(out)
     doc = comparison.to_json()
     doc.update(extra or {})
-    fig = plot_load_comparison(comparison)
     paths = {"json": out / "compare.json", "png": out / "compare.png"}
-    try:
-        write_json(paths["json"], json_safe(doc))
-        save_figure(fig, paths["png"], dpi=110)
-    finally:
-        plt.close(fig)
+    write_json_and_figure(paths["json"], json_safe(doc), paths["png"], plot_load_comparison(comparison))
     return paths

@@ -115,7 +115,7 @@ from tqdm import tqdm
 
 from .bundle import FlightTest
 from .errors import InputError
-from .fileio import save_figure, write_csv, write_json
+from .fileio import save_figure, write_csv, write_json, write_json_and_figure
 from .inflation import _stage_value
 from .memo import DRAWS_NAME, MEMO_NAME, Memo
 from .posterior import stage_key
@@ -1135,18 +1135,11 @@ def compare_fill_time_dispersion(memo: Memo, like: FlightTest, runs: int, rng: n
 
 def write_fill_time_comparison(comparison: FillTimeComparison, out, extra=None):
     """Write np_vs_n.json and fill_time_np_vs_n.png into ``out`` (atomically); return their paths."""
-    import matplotlib.pyplot as plt
-
     from .plots.montecarlo import plot_fill_time_np_vs_n
 
     out = Path(out)
     doc = comparison.to_json()
     doc.update(extra or {})
-    fig = plot_fill_time_np_vs_n(comparison)
     paths = {"json": out / "np_vs_n.json", "png": out / "fill_time_np_vs_n.png"}
-    try:
-        write_json(paths["json"], json_safe(doc))
-        save_figure(fig, paths["png"], dpi=110)
-    finally:
-        plt.close(fig)
+    write_json_and_figure(paths["json"], json_safe(doc), paths["png"], plot_fill_time_np_vs_n(comparison))
     return paths
