@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import shutil
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -240,7 +238,6 @@ def laplace_covariance(model: TestModel, theta):
     constrained directions. Directions that are not curved upwards (a bound,
     a kink) keep the diagonal scale.
     """
-    d = theta.size
     scale = _curvature_scale(model, theta)
     grads = []
     for sign in (+1, -1):

@@ -327,7 +327,6 @@ class TestModel:
     def _load_cells(self, ctx, seen, t):
         obs = self.obs
         values = ctx.values
-        B = ctx.theta.shape[0]
         scale = values["load_scale"][:, None]
         factor = None
         for ext in self.extensions:
