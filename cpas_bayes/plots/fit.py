@@ -56,6 +56,17 @@ def _quantile_bands(x):
     return np.quantile(x, (0.05, 0.25, 0.5, 0.75, 0.95), axis=0)
 
 
+def _data_and_bands(ax, t, data, color, data_label, bands, band_label, starts, ylabel):
+    """One drag-area panel: measured points (if any), posterior bands, stage starts, labels."""
+    if data is not None:
+        ax.plot(t, data, ".", ms=2.5, color=color, label=data_label)
+    _draw_bands(ax, t, bands, _MODEL, band_label)
+    _mark_starts(ax, starts)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+
+
 def _draw_bands(ax, time, bands, color, label):
     q05, q25, q50, q75, q95 = bands
     ax.fill_between(time, q05, q95, color=color, alpha=0.2, lw=0, label=f"{label} 90 % band")
@@ -122,13 +133,8 @@ def plot_bands(fit, pred):
             if row > len(p.stages):
                 ax.set_axis_off()
                 continue
-            if data is not None:
-                ax.plot(t, data, ".", ms=2.5, color=_DATA, label=f"load cell {p.id} (Eq. 11, × s̄ = {s_bar:.3f})")
-            _draw_bands(ax, t, bands, _MODEL, "model")
-            _mark_starts(ax, starts)
-            ax.set_xlabel("time [s]")
-            ax.set_ylabel(f"drag area C_D S [{area}]")
-            ax.grid(alpha=0.3)
+            _data_and_bands(ax, t, data, _DATA, f"load cell {p.id} (Eq. 11, × s̄ = {s_bar:.3f})", bands, "model",
+                            starts, f"drag area C_D S [{area}]")
             if row == 0:
                 ax.set_title(f"{p.id} ({p.kind}, {p.inflation} mass): load cell against the model")
                 ax.legend(fontsize=7, loc="upper left")
@@ -145,12 +151,8 @@ def plot_bands(fit, pred):
     all_starts = np.concatenate([timing[p.id][0] for p in model.parachutes])
     for row in range(n_rows):
         ax = axes[row, ax_col]
-        ax.plot(t, acc_data, ".", ms=2.5, color=_ACC, label="accelerometer drag area (Eq. 8)")
-        _draw_bands(ax, t, acc_bands, _MODEL, "Σ canopies (model)")
-        _mark_starts(ax, all_starts)
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel(f"total drag area [{area}]")
-        ax.grid(alpha=0.3)
+        _data_and_bands(ax, t, acc_data, _ACC, "accelerometer drag area (Eq. 8)", acc_bands, "Σ canopies (model)",
+                        all_starts, f"total drag area [{area}]")
         if row == 0:
             ax.set_title("cluster: accelerometer against the summed model")
             ax.legend(fontsize=7, loc="upper left")
