@@ -105,6 +105,8 @@ import pandas as pd
 from scipy import stats
 from scipy.signal import savgol_filter
 
+from .fileio import jsonable
+
 PEAK_SMOOTHING_BINS = 5          # quadratic Savitzky–Golay window, bins
 FILL_FRACTION = 0.95             # fill time: reach this fraction of the growth to the stage mean
 BEFORE_WINDOW = 0.25             # s before a stage start that give the held level
@@ -162,12 +164,12 @@ def predict_draws(model, theta, batch=256, log_likelihood=False):
         if not log_likelihood:
             continue
         parts["ll_total"].append(model.pointwise_log_likelihood(rows, pred))
-        per_channel = model.pointwise_log_likelihood(rows, pred, by_channel=True)
-        if isinstance(per_channel, tuple):
-            parts["ll_acc"].append(per_channel[0])
-            parts["ll_lc"].append(per_channel[1])
-        else:  # an extension's likelihood (e.g. AR(1)) gives the total per bin only
+        if model.replaces_error_model:  # an extension's likelihood (e.g. AR(1)) gives the total per bin only
             split = False
+            continue
+        ll_acc, ll_lc = model.pointwise_log_likelihood(rows, pred, by_channel=True)
+        parts["ll_acc"].append(ll_acc)
+        parts["ll_lc"].append(ll_lc)
     out = {name: np.concatenate(parts[name], axis=0) for name in fields}
     if log_likelihood:
         out["ll_total"] = np.concatenate(parts["ll_total"], axis=0)
@@ -752,26 +754,6 @@ def residuals(fit, tree=None) -> ResidualReport:
 # report
 
 
-def _jsonable(value):
-    """Plain Python values, NaN/inf → None, for ``write_json``."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, pd.DataFrame):
-        return [_jsonable(r) for r in value.to_dict(orient="records")]
-    if isinstance(value, np.ndarray):
-        return [_jsonable(v) for v in value.tolist()]
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        v = float(value)
-        return v if math.isfinite(v) else None
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
-
-
 @dataclass
 class FitChecks:
     """All checks of one fit (what :func:`run_checks` computes, :func:`check_report` serialises)."""
@@ -818,4 +800,4 @@ def check_report(fit, n_draws=200, rng=None, checks=None) -> dict:
             "ljung_box_lags": f"min({LJUNG_BOX_LAGS}, n // 4)",
         },
     }
-    return _jsonable(report)
+    return jsonable(report)

@@ -20,6 +20,8 @@ from . import __version__
 from .bundle import read_bundle, summary
 from .errors import InputError
 
+CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
+
 
 def _format_summary(s):
     lines = [f"{s['name']}  ({s['phase']}, {s['units']} units)",
@@ -296,6 +298,47 @@ def pool_command(fitdirs, out, seed):
                    f"[{pair.rho_interval[0]:.2f}, {pair.rho_interval[1]:.2f}], "
                    f"{'kept' if pair.keep else 'not kept'} (delta elpd {pair.elpd_diff:+.2f})")
     click.echo(f"wrote {paths['memo']}, {paths['draws']}, {paths['markdown']} and {len(paths['figures'])} figures")
+
+
+@cli.command("diagnose")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for diagnosis.json, diagnosis.md, candidates.csv and the figures.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every fit of the comparison.")
+@click.option("--priors", type=click.Path(path_type=Path), default=None,
+              help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
+@click.option("--candidates", default=",".join(CANDIDATE_NAMES), show_default=True,
+              help="Comma-separated extensions to try against the baseline.")
+@click.option("--workers", type=int, default=2, show_default=True, help="Processes running ensembles at once.")
+def diagnose_command(bundle, out, seed, priors, candidates, workers):
+    """Find what the baseline simulation gets wrong in one test and name the cause.
+
+    Fits the baseline and the baseline plus each candidate term, compares them
+    by PSIS-LOO and names the physical term that wins clearly (or none); see
+    OUT/diagnosis.md.
+    """
+    from dataclasses import replace
+
+    from .diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test, write_diagnosis
+    from .extensions import EXTENSIONS
+
+    names = tuple(c.strip() for c in candidates.split(",") if c.strip())
+    unknown = [n for n in names if n not in EXTENSIONS]
+    if unknown or not names:
+        raise click.BadParameter(f"unknown extension(s) {', '.join(unknown) or '(none given)'}; use any of "
+                                 f"{', '.join(EXTENSIONS)}", param_hint="--candidates")
+    test = read_bundle(bundle)
+    options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
+                              sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
+    diagnosis = diagnose_test(test, options, echo=click.echo)
+    path = write_diagnosis(diagnosis, out)
+    table = diagnosis.versus_baseline.sort_values("elpd_diff", ascending=False)
+    for r in table.to_dict("records"):
+        click.echo(f"  {r['name']:<17} elpd gain {r['elpd_diff']:+9.1f} ± {r['elpd_diff_se']:.1f}")
+    click.echo(f"cause: {diagnosis.cause}")
+    for reason in diagnosis.reasons:
+        click.echo(f"  - {reason}")
+    click.echo(f"wrote {path}, {out / 'diagnosis.md'} and the figures")
 
 
 # -- commands added by later capabilities go above this line --

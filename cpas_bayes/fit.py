@@ -190,15 +190,18 @@ def _curvature_scale(model, theta):
     return np.minimum(scale, prior_scale)
 
 
-def find_map(model: TestModel, rng, starts=6):
+def find_map(model: TestModel, rng, starts=6, guesses=None):
     """Maximum a posteriori θ from a data-driven guess and up to ``starts − 1`` jittered copies.
+
+    ``guesses`` (rows of θ) replace the data-driven guess: the first is jittered,
+    all are tried first — an extended model starts from its baseline's MAP.
 
     Each start runs L-BFGS-B in scaled coordinates z = (θ − θ₀)/scale. The
     search stops early once a second start reaches the best optimum again
     (within 0.05 in log p): that optimum is then not a lucky local one.
     """
-    guess = first_guess(model)
-    candidates = [guess]
+    candidates = [np.asarray(g, float) for g in guesses] if guesses is not None else [first_guess(model)]
+    guess = candidates[0]
     prior_scale = np.array([_prior_scale(p.prior) for p in model.parameters])
     while len(candidates) < starts:
         trial = guess + 0.1 * prior_scale * rng.standard_normal(guess.size)
@@ -393,10 +396,13 @@ def _ensemble_task(args):
 
 
 def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(), checkpoint_dir=None,
-                     echo=None) -> SamplingResult:
-    """MAP, Laplace ball and ``options.n_ensembles`` ensembles; returns all draws."""
+                     echo=None, guesses=None) -> SamplingResult:
+    """MAP, Laplace ball and ``options.n_ensembles`` ensembles; returns all draws.
+
+    ``guesses``: starting points for the MAP search (see :func:`find_map`).
+    """
     rng = np.random.default_rng(options.seed)
-    theta_map, lp_map = find_map(model, rng, options.map_starts)
+    theta_map, lp_map = find_map(model, rng, options.map_starts, guesses)
     cov = laplace_covariance(model, theta_map)
     n_walkers = options.walkers or 2 * model.ndim + 2
     n_walkers += n_walkers % 2
@@ -488,12 +494,14 @@ def prepare_model(test, reduction=None, priors=None, decay="linear", extensions=
     return TestModel(test, obs, kind_priors, load_nuisance_priors(priors), decay=decay, extensions=extensions)
 
 
-def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=None, echo=None) -> Fit:
+def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=None, echo=None,
+              guesses=None) -> Fit:
     """Sample ``model``'s posterior; write ``posterior.nc`` and ``summary.json`` into ``out`` if given."""
     from .posterior import POSTERIOR_NAME, build_datatree, build_summary, convergence, save_datatree, write_summary
 
     out = Path(out) if out else None
-    sampling = sample_posterior(model, options, checkpoint_dir=out / "checkpoint" if out else None, echo=echo)
+    sampling = sample_posterior(model, options, checkpoint_dir=out / "checkpoint" if out else None, echo=echo,
+                                guesses=guesses)
     tree = build_datatree(model, sampling, np.random.default_rng([options.seed, 99]))
     diagnostics = convergence(tree, sampling)
     summary = build_summary(model, tree, diagnostics, options)

@@ -108,6 +108,11 @@ class Extension:
         """Starting values {name: value} for the MAP search (default: prior medians)."""
         return {}
 
+    def start_points(self, model):
+        """Starting values of this term's parameters when it is added to a fitted baseline:
+        a list of {name: value}, each one MAP start (default: ``initial_values``)."""
+        return [self.initial_values(model)]
+
     def reshape_drag_area(self, ctx, cds, t):
         """Return a modified (B, P, N) drag area evaluated at times ``t``."""
         return cds
@@ -371,6 +376,26 @@ class TestModel:
         diag_lc = r_lc**2 * self._w_lc
         return diag_acc + diag_lc.sum(axis=1) - shared**2 / self._denom, r_acc, r_lc
 
+    def whitened_residuals(self, theta, pred):
+        """Residuals whitened with the per-bin covariance: z (B, C, N) with z ~ N(0, I) under the model.
+
+        Channels are ordered accelerometer, then the load cells. With v = D^(−½)u,
+        (I + vvᵀ)^(−½) = I − c·vvᵀ, c = (1 − 1/√(1 + |v|²))/|v|², so
+        z = (I − c·vvᵀ)·D^(−½)·r̃ and zᵀz is the quadratic form of the likelihood.
+        Also returns log det Σ per bin (B, N) (with the multipliers).
+        """
+        obs = self.obs
+        r_acc = (obs.acc[None, :] - pred.acc) / pred.noise_acc[:, None]
+        r_lc = (obs.lc[None] - pred.lc) / pred.noise_lc[:, None, None]
+        y = np.concatenate([r_acc[:, None, :] * np.sqrt(self._w_acc), r_lc * np.sqrt(self._w_lc)], axis=1)
+        v = np.concatenate([(obs.acc_qbar * np.sqrt(self._w_acc))[None], obs.lc_qbar * np.sqrt(self._w_lc)])
+        v2 = self._denom - 1.0
+        c = np.where(v2 > 1e-12, (1.0 - 1.0 / np.sqrt(self._denom)) / np.where(v2 > 1e-12, v2, 1.0), 0.5)
+        z = y - c * v * (v * y).sum(axis=1, keepdims=True)
+        log_det = -2.0 * (self._ll_const + 0.5 * (1 + obs.lc.shape[0]) * _LOG_2PI) \
+            + 2.0 * self._log_multipliers(pred)[:, None]
+        return z, log_det
+
     def _log_multipliers(self, pred):
         """Σ_c log λ_c per bin (B,): one accelerometer channel and L load cells."""
         return np.log(pred.noise_acc) + self.obs.lc.shape[0] * np.log(pred.noise_lc)
@@ -402,11 +427,16 @@ class TestModel:
         quad, _, _ = self._quadratic_form(theta, pred)
         return -0.5 * quad - self._log_multipliers(pred)[:, None] + self._ll_const
 
+    @property
+    def replaces_error_model(self):
+        """True when an extension brings its own error model (no per-channel log-likelihood then)."""
+        return any(type(ext).log_likelihood is not Extension.log_likelihood for ext in self.extensions)
+
     def log_likelihood(self, theta):
         """Total log-likelihood (B,), the sum of :meth:`pointwise_log_likelihood` over bins."""
         theta = np.atleast_2d(theta)
         pred = self.predict(theta)
-        if any(type(ext).log_likelihood is not Extension.log_likelihood for ext in self.extensions):
+        if self.replaces_error_model:
             return self.pointwise_log_likelihood(theta, pred).sum(axis=1)
         quad, _, _ = self._quadratic_form(theta, pred)
         return (-0.5 * quad.sum(axis=1) - self.obs.n_bins * self._log_multipliers(pred)

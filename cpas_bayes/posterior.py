@@ -148,9 +148,12 @@ def build_datatree(model, sampling, rng, budget=1000):
     ll_idx = _subset_indices(n_chain, n_draw, budget)
     sub = chains[:, ll_idx, :].reshape(-1, chains.shape[-1])
     pred = _predict_in_batches(model, sub)
-    ll_acc, ll_lc = model.pointwise_log_likelihood(sub, pred, by_channel=True)
     total = model.pointwise_log_likelihood(sub, pred)
     shape = (n_chain, ll_idx.size)
+    log_likelihood = {"total": total.reshape(shape + total.shape[1:])}
+    if not model.replaces_error_model:   # an AR(1) error model has no per-channel marginal
+        ll_acc, ll_lc = model.pointwise_log_likelihood(sub, pred, by_channel=True)
+        log_likelihood.update(acc=ll_acc.reshape(shape + ll_acc.shape[1:]), lc=ll_lc.reshape(shape + ll_lc.shape[1:]))
     # Replicated data with the likelihood's error structure: independent parts plus
     # one shared q̄ draw per bin.
     shared = rng.standard_normal(pred.acc.shape)
@@ -166,9 +169,7 @@ def build_datatree(model, sampling, rng, budget=1000):
         {
             "posterior": posterior,
             "sample_stats": {"lp": lp},
-            "log_likelihood": {"total": total.reshape(shape + total.shape[1:]),
-                               "acc": ll_acc.reshape(shape + ll_acc.shape[1:]),
-                               "lc": ll_lc.reshape(shape + ll_lc.shape[1:])},
+            "log_likelihood": log_likelihood,
             "posterior_predictive": {"acc": acc_pp, "lc": lc_pp},
             "observed_data": {"acc": obs.acc, "lc": obs.lc},
             "constant_data": {"acc_sigma": obs.acc_sigma, "lc_sigma": obs.lc_sigma,

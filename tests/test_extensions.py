@@ -1,5 +1,7 @@
 """Model extensions: neutral at zero size, and each explains its own simulated effect."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -42,17 +44,31 @@ def test_a_zero_size_extension_is_the_baseline(clean_drogue, name):
                                                                    rel=1e-10)
 
 
-def test_ar1_with_no_memory_is_the_per_channel_likelihood(clean_drogue):
+def test_ar1_with_no_memory_is_the_baseline_bin_by_bin(clean_drogue):
+    """At τ_c → 0 the AR(1) model is the baseline's joint likelihood (q̄ covariance included), per bin."""
     test, reduction, truth = clean_drogue
     base = prepare_model(test, reduction=reduction)
     ar = prepare_model(test, reduction=reduction, extensions=[make_extension("correlated_noise")])
     theta = np.array([truth.get(n, 1.0) for n in base.names])[None]
     theta_ar = np.array([truth.get(n, 1e-9 if n == "ar_time" else 1.0) for n in ar.names])[None]
-    acc, lc = base.pointwise_log_likelihood(theta, by_channel=True)
-    expected = acc.sum() + lc.sum()
-    assert ar.log_likelihood(theta_ar)[0] == pytest.approx(expected, rel=1e-10)
+    np.testing.assert_allclose(ar.pointwise_log_likelihood(theta_ar), base.pointwise_log_likelihood(theta),
+                               rtol=1e-10)
     with pytest.raises(ValueError, match="no per-channel log-likelihood"):
         ar.pointwise_log_likelihood(theta_ar, by_channel=True)
+
+
+def test_ar1_rewards_memory_only_when_the_residuals_have_it(clean_drogue):
+    """Whitened residuals: on clean data at the truth a long memory costs likelihood; on residuals
+    made smooth (a slow wave added to the data) it pays."""
+    test, reduction, truth = clean_drogue
+    ar = prepare_model(test, reduction=reduction, extensions=[make_extension("correlated_noise")])
+    theta = {tau: np.array([truth.get(n, tau if n == "ar_time" else 1.0) for n in ar.names])[None]
+             for tau in (1e-6, 0.05)}
+    assert ar.log_likelihood(theta[0.05])[0] < ar.log_likelihood(theta[1e-6])[0] - 50
+    obs = ar.obs
+    wave = 10.0 * np.hypot(obs.acc_sigma, obs.acc_qbar) * np.sin(2 * np.pi * obs.time / 4.0)
+    ar.obs = replace(obs, acc=obs.acc + wave)
+    assert ar.log_likelihood(theta[0.05])[0] > ar.log_likelihood(theta[1e-6])[0] + 50
 
 
 @pytest.mark.parametrize("scenario", ["drogue", "main"])
