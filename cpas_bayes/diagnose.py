@@ -26,6 +26,12 @@ Procedure (``diagnose_test``)
      standard errors,
    * it beats ``correlated_noise`` (higher elpd): structure that a generic
      AR(1) error model explains as well is not evidence of a physical cause,
+   * its fitted size is practical: the posterior median of the term's size
+     parameter is beyond the floor the term declares
+     (``Extension.practical_floor``: k_a 0.05, Δs 0.015, lag 10 ms, ring
+     amplitude 1 %) — a region of practical equivalence around "no effect".
+     Small differences between simulators or data systems fit as tiny sizes
+     with real elpd gains; they are not causes,
    * if the runner-up physical candidate also gains more than ``min_gain``,
      the best leads it by more than ``min_margin_se`` (2) standard errors of
      their paired difference: two terms that explain the same misfit equally
@@ -67,8 +73,8 @@ BASELINE = "baseline"
 
 # Short fits: the comparison needs ~1,000 nearly independent draws per model,
 # not a memo-grade posterior. Two ensembles still give a nested R-hat.
-DIAGNOSIS_SAMPLER = SamplerOptions(n_ensembles=2, check_every=500, max_steps=3000, tau_factor=20.0,
-                                   tau_rtol=0.2, map_starts=2, workers=2, progress=True)
+DIAGNOSIS_SAMPLER = SamplerOptions(n_ensembles=2, check_every=500, max_steps=2000, tau_factor=10.0,
+                                   tau_rtol=0.25, map_starts=2, workers=2, progress=True)
 
 BAND = 0.90                 # data coverage band of the gain table
 BREATHING_BAND_HZ = (0.1, 3.0)
@@ -86,6 +92,8 @@ class DiagnoseOptions:
     sampler: SamplerOptions = DIAGNOSIS_SAMPLER
     priors: object = None
     decay: str = "linear"
+    mode: str = "full"               # "full": sample every candidate; "screen": MAP screen first
+    screen_gain: float = 5.0         # screen: a physical term is sampled if its MAP gain exceeds this
 
 
 @dataclass
@@ -103,6 +111,18 @@ class CandidateFit:
 
 
 @dataclass
+class ScreenResult:
+    """A candidate's MAP next to the baseline's: the cheap first look of mode ``screen``."""
+
+    name: str
+    map_gain: float          # log posterior at the extended MAP − at the baseline MAP
+    size: float | None       # the term's size parameter at its MAP (None: no physical size)
+    passed: bool
+    theta_map: np.ndarray
+    seconds: float
+
+
+@dataclass
 class Diagnosis:
     """Everything ``diagnose`` found for one test."""
 
@@ -117,6 +137,7 @@ class Diagnosis:
     gain: dict
     moved: dict
     checks: object                   # the baseline's checks.FitChecks
+    screen: dict = field(default_factory=dict)   # name -> ScreenResult (mode "screen")
     options: DiagnoseOptions = field(default_factory=DiagnoseOptions)
 
 
@@ -176,24 +197,60 @@ def extension_starts(model, baseline_model, baseline_map, extension):
     return rows
 
 
-def fit_candidate(name, test, reduction, options: DiagnoseOptions, baseline=None, echo=None, index=0):
-    """Fit the baseline (``name == "baseline"``) or the baseline plus one extension."""
+def _extended_model(name, test, reduction, options, baseline):
+    if name == "canopy_breathing":
+        guess = breathing_frequency_guess(baseline.fit.model, baseline.fit.sampling.theta_map)
+        extension = make_extension(name, frequency_guess=guess)
+    else:
+        extension = make_extension(name)
+    model = prepare_model(test, reduction, options.priors, options.decay, extensions=[extension])
+    return model, extension
+
+
+def fit_candidate(name, test, reduction, options: DiagnoseOptions, baseline=None, echo=None, index=0, guesses=None):
+    """Fit the baseline (``name == "baseline"``) or the baseline plus one extension.
+
+    ``guesses`` replace the extension's MAP starts (e.g. the screen's MAP).
+    """
     started = _time.perf_counter()
     sampler = replace(options.sampler, seed=int(np.random.default_rng([options.seed, index]).integers(2**31 - 1)))
     if name == BASELINE:
         model = prepare_model(test, reduction, options.priors, options.decay)
         fit = fit_model(model, sampler, echo=echo)
     else:
-        if name == "canopy_breathing":
-            guess = breathing_frequency_guess(baseline.fit.model, baseline.fit.sampling.theta_map)
-            extension = make_extension(name, frequency_guess=guess)
-        else:
-            extension = make_extension(name)
-        model = prepare_model(test, reduction, options.priors, options.decay, extensions=[extension])
-        guesses = extension_starts(model, baseline.fit.model, baseline.fit.sampling.theta_map, extension)
+        model, extension = _extended_model(name, test, reduction, options, baseline)
+        if guesses is None:
+            guesses = extension_starts(model, baseline.fit.model, baseline.fit.sampling.theta_map, extension)
         fit = fit_model(model, replace(sampler, map_starts=max(len(guesses), sampler.map_starts)),
                         echo=echo, guesses=guesses)
     return CandidateFit(name=name, fit=fit, loo=psis_loo(fit.tree), seconds=_time.perf_counter() - started)
+
+
+def screen_candidate(name, test, reduction, options: DiagnoseOptions, baseline: CandidateFit, index=0):
+    """MAP of the baseline plus ``name`` from the baseline's MAP; passes when the log posterior rises by
+    more than ``options.screen_gain`` with the term's size beyond its practical floor.
+
+    The MAP gain bounds the elpd gain from above up to the width terms (a term
+    that cannot raise the best fit cannot predict held-out bins better), so a
+    term failing the screen could not have passed the naming rule's
+    ``min_gain`` > ``screen_gain``.
+    """
+    from .fit import find_map
+
+    started = _time.perf_counter()
+    model, extension = _extended_model(name, test, reduction, options, baseline)
+    guesses = extension_starts(model, baseline.fit.model, baseline.fit.sampling.theta_map, extension)
+    rng = np.random.default_rng([options.seed, index, 3])
+    theta, log_post = find_map(model, rng, max(len(guesses), options.sampler.map_starts), guesses)
+    gain = float(log_post - baseline.fit.sampling.log_post_map)
+    size = None
+    passed = gain > options.screen_gain
+    if extension.practical_floor is not None:
+        param, floor = extension.practical_floor
+        size = float(theta[model.index[param]])
+        passed = passed and abs(size) >= floor
+    return ScreenResult(name=name, map_gain=gain, size=size, passed=bool(passed), theta_map=theta,
+                        seconds=_time.perf_counter() - started)
 
 
 # ---------------------------------------------------------------------------
@@ -229,7 +286,9 @@ def versus_baseline(baseline, candidates):
                      "physical": name in PHYSICAL, "seconds": c.seconds,
                      "converged": bool(c.fit.summary["diagnostics"]["converged"]),
                      "rhat_max": float(c.fit.summary["diagnostics"]["rhat_max"])})
-    return pd.DataFrame(rows)
+    columns = ["name", "elpd_diff", "elpd_diff_se", "z", "elpd_loo", "p_loo", "n_high_pareto_k", "physical",
+               "seconds", "converged", "rhat_max"]
+    return pd.DataFrame(rows, columns=columns)
 
 
 def name_cause(baseline, candidates, options: DiagnoseOptions):
@@ -241,6 +300,14 @@ def name_cause(baseline, candidates, options: DiagnoseOptions):
     best = physical.iloc[0]
     reasons = []
     ok = True
+    floor = make_extension(best["name"]).practical_floor
+    if floor is not None:
+        param, size = floor
+        median = extension_parameters(candidates[best["name"]])[param]["median"]
+        if abs(median) < size:
+            ok = False
+            reasons.append(f"{best['name']}'s fitted size {param} = {median:.3g} is below the practical floor "
+                           f"{size:g}: a real but negligible effect, not a cause")
     if not (best["elpd_diff"] > options.min_gain and best["elpd_diff"] > options.min_gain_se * best["elpd_diff_se"]):
         ok = False
         reasons.append(f"the best physical term, {best['name']}, gains {best['elpd_diff']:.1f} ± "
@@ -420,25 +487,62 @@ def _evidence(checks, candidate_table):
     }
 
 
-def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=None, echo=None) -> Diagnosis:
-    """Fit the baseline and every candidate, compare them, name the cause and measure its gain."""
+def baseline_from_fit(fit: Fit) -> CandidateFit:
+    """Use an existing baseline fit (e.g. a campaign's) as the diagnosis' baseline."""
+    return CandidateFit(name=BASELINE, fit=fit, loo=psis_loo(fit.tree), seconds=0.0)
+
+
+def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=None, echo=None,
+                  baseline_fit: Fit | None = None) -> Diagnosis:
+    """Fit the baseline and the candidates, compare them, name the cause and measure its gain.
+
+    Mode ``full`` samples every candidate. Mode ``screen`` first finds each
+    physical candidate's MAP from the baseline's and samples only those that
+    pass :func:`screen_candidate` (plus ``correlated_noise`` to compare with);
+    when none passes, the cause is ``none`` without further sampling.
+    ``baseline_fit`` reuses a baseline fit instead of sampling one.
+    """
     from . import checks as chk
     from .reduction import reduce_test
 
     say = echo or (lambda msg: None)
     reduction = reduction if reduction is not None else reduce_test(test)
-    say(f"{test.name}: baseline fit")
-    baseline = fit_candidate(BASELINE, test, reduction, options, echo=echo)
+    if baseline_fit is None:
+        say(f"{test.name}: baseline fit")
+        baseline = fit_candidate(BASELINE, test, reduction, options, echo=echo)
+    else:
+        baseline = baseline_from_fit(baseline_fit)
+    screen = {}
+    to_fit = list(options.candidates)
+    if options.mode == "screen":
+        for i, name in enumerate(n for n in options.candidates if n in PHYSICAL):
+            screen[name] = screen_candidate(name, test, reduction, options, baseline, index=i + 1)
+            r = screen[name]
+            say(f"{test.name}: screen {name}: MAP gain {r.map_gain:+.1f}"
+                + (f", size {r.size:.3g}" if r.size is not None else "") + (" → sample" if r.passed else ""))
+        passed = [n for n, r in screen.items() if r.passed]
+        to_fit = passed + ([n for n in options.candidates if n not in PHYSICAL] if passed else [])
+    elif options.mode != "full":
+        raise ValueError(f"unknown diagnosis mode {options.mode!r}; use 'full' or 'screen'")
     candidates = {}
-    for i, name in enumerate(options.candidates):
-        say(f"{test.name}: fit with {name} ({i + 1}/{len(options.candidates)})")
-        candidates[name] = fit_candidate(name, test, reduction, options, baseline=baseline, echo=echo, index=i + 1)
-    table = versus_baseline(baseline, candidates)
-    cause, reasons = name_cause(baseline, candidates, options)
+    for i, name in enumerate(to_fit):
+        say(f"{test.name}: fit with {name} ({i + 1}/{len(to_fit)})")
+        guesses = [screen[name].theta_map] if name in screen else None
+        candidates[name] = fit_candidate(name, test, reduction, options, baseline=baseline, echo=echo,
+                                         index=options.candidates.index(name) + 1, guesses=guesses)
     rng = np.random.default_rng([options.seed, 7])
     checks = chk.run_checks(baseline.fit, rng=rng)
+    table = versus_baseline(baseline, candidates)
+    if candidates:
+        cause, reasons = name_cause(baseline, candidates, options)
+    else:
+        cause = "none"
+        reasons = [f"no physical term raised the MAP log posterior by more than {options.screen_gain:g} with a "
+                   "fitted size beyond its practical floor: "
+                   + "; ".join(f"{n} {r.map_gain:+.1f}" + (f" (size {r.size:.3g})" if r.size is not None else "")
+                               for n, r in screen.items())]
     evidence = _evidence(checks, table)
-    physical = table[table["physical"]].sort_values("elpd_diff", ascending=False)
+    physical = table[table["physical"]].sort_values("elpd_diff", ascending=False) if len(table) else table
     shown = cause if cause != "none" else (str(physical.iloc[0]["name"]) if len(physical) else None)
     gain = {}
     if shown is not None:
@@ -449,9 +553,10 @@ def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=
         gain["named"] = cause != "none"
         gain["residuals"] = {"baseline": base_q["residuals"], "extended": ext_q["residuals"]}
     moved = {name: moved_parameters(baseline, c) for name, c in candidates.items()}
-    return Diagnosis(test=test.name, baseline=baseline, candidates=candidates,
-                     comparison=compare_table(baseline, candidates), versus_baseline=table, cause=cause,
-                     reasons=reasons, evidence=evidence, gain=gain, moved=moved, checks=checks, options=options)
+    comparison = compare_table(baseline, candidates) if candidates else pd.DataFrame()
+    return Diagnosis(test=test.name, baseline=baseline, candidates=candidates, comparison=comparison,
+                     versus_baseline=table, cause=cause, reasons=reasons, evidence=evidence, gain=gain, moved=moved,
+                     checks=checks, screen=screen, options=options)
 
 
 # ---------------------------------------------------------------------------
@@ -485,6 +590,12 @@ def diagnosis_document(d: Diagnosis):
                      "params": extension_parameters(c), "physical": r["physical"], "p_loo": r["p_loo"],
                      "n_high_pareto_k": r["n_high_pareto_k"], "converged": r["converged"],
                      "rhat_max": r["rhat_max"], "seconds": r["seconds"], "moved": d.moved[r["name"]]})
+    for name, r in d.screen.items():
+        if name in d.candidates:
+            continue
+        size = {} if r.size is None else {make_extension(name).practical_floor[0]: {"map": r.size}}
+        rows.append({"name": name, "elpd_diff": None, "elpd_diff_se": None, "params": size, "physical": True,
+                     "screened_out": True, "map_gain": r.map_gain, "seconds": r.seconds})
     gain = {k: v for k, v in d.gain.items() if k != "residuals"}
     o = d.options
     return jsonable({
@@ -498,6 +609,8 @@ def diagnosis_document(d: Diagnosis):
                          "se of their paired difference; otherwise none",
                  "loo": "PSIS-LOO per time bin on the joint log-likelihood of all channels of the bin; "
                         "correlated_noise uses the AR-conditional log p(y_t | y_t-1)"},
+        "mode": o.mode,
+        "screen": {n: {"map_gain": r.map_gain, "size": r.size, "passed": r.passed} for n, r in d.screen.items()},
         "candidates": rows,
         "baseline": {"elpd_loo": float(d.baseline.loo.elpd), "se": float(d.baseline.loo.se),
                      "p_loo": float(d.baseline.loo.p), "seconds": d.baseline.seconds,
@@ -538,6 +651,10 @@ def diagnosis_markdown(d: Diagnosis, units):
         moved = d.moved[r["name"]]
         mtxt = ", ".join(f"{k} ({v['shift_in_baseline_sd']:+.1f} sd)" for k, v in list(moved.items())[:4]) or "—"
         lines.append(f"| {r['name']} | {r['elpd_diff']:.1f} ± {r['elpd_diff_se']:.1f} | {ptxt} | {mtxt} |")
+    for name, r in d.screen.items():
+        if name not in d.candidates:
+            size = f"size {r.size:.3g} at the MAP" if r.size is not None else ""
+            lines.append(f"| {name} | not sampled: MAP gain {r.map_gain:+.1f} (screen) | {size} | — |")
     lines.append("")
     if d.gain:
         g = d.gain
@@ -561,9 +678,9 @@ def diagnosis_markdown(d: Diagnosis, units):
         lines.append(f"| {ch} | {r['sd']:.2f} | {r['acf1']:+.2f} | {r['ljung_box_p']:.2g} |")
     lines += ["", f"PPC statistics outside 1–99 %: {len(ev['ppc_flags'])}; bins with Pareto k > 0.7: "
                   f"{ev['pareto_k']['n_high_pareto_k']}.", "",
-              "Figures: `elpd.png` (the comparison), `residuals.png` (before/after), `comparison.png` "
-              "(predictions against the data), `baseline/residuals.png`, `baseline/ppc.png`, "
-              "`baseline/loo_pit.png`.", ""]
+              "Figures: `elpd.png` (the comparison), `screen.png` (MAP screen, mode screen), `residuals.png` "
+              "(before/after), `comparison.png` (predictions against the data), `baseline/residuals.png`, "
+              "`baseline/ppc.png`, `baseline/loo_pit.png`.", ""]
     return "\n".join(lines)
 
 
@@ -593,7 +710,11 @@ def write_diagnosis(d: Diagnosis, out):
         save_figure(fig, out / name, dpi=110)
         plt.close(fig)
 
-    save(figs.plot_elpd(d.versus_baseline, d.cause, d.options.min_gain, d.options.min_gain_se, d.test), "elpd.png")
+    if len(d.versus_baseline):
+        save(figs.plot_elpd(d.versus_baseline, d.cause, d.options.min_gain, d.options.min_gain_se, d.test),
+             "elpd.png")
+    if d.screen:
+        save(figs.plot_screen(d.screen, d.options.screen_gain, d.test), "screen.png")
     save(plot_residuals(d.checks.residuals), "baseline/residuals.png")
     save(plot_ppc(d.checks.ppc), "baseline/ppc.png")
     save(plot_loo_pit(d.checks.loo_pit), "baseline/loo_pit.png")

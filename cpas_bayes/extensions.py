@@ -58,6 +58,7 @@ _DERIVATIVE_STEP = 1e-3  # s, central difference of the stage law
 
 class AddedMass(Extension):
     name = "added_mass"
+    practical_floor = ("k_a", 0.05)   # below: < 1/4 of the smallest added mass the Drogue tests suggest
 
     def parameters(self, model):
         obs = model.obs
@@ -90,6 +91,7 @@ class AddedMass(Extension):
 
 class FrictionDrift(Extension):
     name = "friction_drift"
+    practical_floor = ("load_scale_change", 0.015)   # 1.5 % of the load; clean Mains fit up to 0.6 %
 
     def parameters(self, model):
         starts = [s.start for p in model.parachutes for s in p.stages]
@@ -108,6 +110,7 @@ class FrictionDrift(Extension):
 
 class SensorLag(Extension):
     name = "sensor_lag"
+    practical_floor = ("lag", 0.010)   # one 100 Hz sample: clean bundles of two simulators fit 2–4 ms
 
     def parameters(self, model):
         return [Parameter("lag", TruncNormal(0.0, 0.1, -0.2, 0.3), "s", self.name)]
@@ -124,6 +127,7 @@ BREATHING_FREQUENCY = {"drogue": 1.2, "pilot": 1.5, "fbcp": 1.5, "main": 0.35}  
 
 class CanopyBreathing(Extension):
     name = "canopy_breathing"
+    practical_floor = ("breathing_amplitude", 0.01)   # a 1 % ring of the drag area
 
     def __init__(self, frequency_guess=None):
         self.frequency_guess = frequency_guess

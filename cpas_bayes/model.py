@@ -100,6 +100,9 @@ class Extension:
     """
 
     name = "extension"
+    # (parameter, size): a fitted |median| below size is practically no effect (a region of
+    # practical equivalence around the neutral value); None for terms without a physical size.
+    practical_floor = None
 
     def parameters(self, model):
         return []

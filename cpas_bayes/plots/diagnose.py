@@ -1,6 +1,7 @@
 """Figures of a diagnosis (:mod:`cpas_bayes.diagnose`).
 
-* ``elpd.png`` — each candidate's elpd gain over the baseline with its ±4 se
+* ``screen.png`` — (mode screen) each physical term's MAP gain over the baseline.
+* ``elpd.png`` — each candidate's elpd gain over the baseline with its ±2 se
   bar and the rule's thresholds: the named cause stands clear of zero, of the
   AR(1) alternative and of the other physical terms.
 * ``residuals.png`` — standardised residuals against time per channel,
@@ -48,8 +49,28 @@ def plot_elpd(table, cause, min_gain, min_gain_se, test_name):
     ax.grid(alpha=0.3, axis="x")
     verdict = f"named cause: {cause.replace('_', ' ')}" if cause != "none" else "no physical cause named"
     ax.set_title(f"{test_name}: which term explains the data better? ({verdict})\n"
-                 "A cause is named when its bar clears the dashed line and zero by 2 se, and beats the "
-                 "generic AR(1) term", fontsize=9)
+                 "named when its bar clears the dashed line and zero by 2 se and beats AR(1)", fontsize=9)
+    return fig
+
+
+def plot_screen(screen, threshold, test_name):
+    """MAP log-posterior gain of each physical term over the baseline, with the screen threshold."""
+    names = list(screen)
+    gains = [screen[n].map_gain for n in names]
+    fig, ax = plt.subplots(figsize=(8.5, 0.6 * len(names) + 1.8), constrained_layout=True)
+    y = np.arange(len(names))
+    ax.barh(y, gains, color=[_EXT if screen[n].passed else "0.6" for n in names])
+    ax.axvline(threshold, color="crimson", ls="--", lw=0.8, label=f"screen: gain > {threshold:g}")
+    ax.axvline(0, color="k", lw=0.8)
+    labels = [n.replace("_", " ") + ("" if screen[n].size is None else f"  (size {screen[n].size:.3g})")
+              for n in names]
+    ax.set_yticks(y, labels)
+    ax.set_xscale("symlog", linthresh=10)
+    ax.set_xlabel("log posterior at the extended MAP − at the baseline MAP (symmetric-log axis)")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3, axis="x")
+    ax.set_title(f"{test_name}: MAP screen — orange terms (gain above the line, size beyond its floor) "
+                 "go on to sampling and PSIS-LOO", fontsize=9)
     return fig
 
 
