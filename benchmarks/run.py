@@ -8,6 +8,11 @@ Measured (not timed tests):
   (minimum bulk ESS over parameters / wall time), and in the same run the wall
   time of a Nelder–Mead point fit of the same model (scipy, from the same
   first guess, to its default tolerance), with the ratio of the two.
+* diagnose_drogue / diagnose_main: wall time of ``cpas-bayes diagnose`` (mode
+  full: baseline + five candidates sampled, PSIS-LOO, gain, no figures) on the
+  same examples; and in mode screen.
+
+Results are merged into the JSON file, so ``--only`` refreshes some entries.
 """
 
 from __future__ import annotations
@@ -53,9 +58,29 @@ def bench_fit(path):
             "posterior_over_point_fit": wall / point_s}
 
 
+def bench_diagnose(path, mode):
+    from dataclasses import replace
+
+    from cpas_bayes.diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test
+
+    test = read_bundle(path)
+    t0 = time.perf_counter()
+    d = diagnose_test(test, DiagnoseOptions(mode=mode, sampler=replace(DIAGNOSIS_SAMPLER, progress=False)))
+    wall = time.perf_counter() - t0
+    return {"test": test.name, "mode": mode, "wall_s": wall, "cause": d.cause,
+            "candidates_sampled": sorted(d.candidates),
+            "elpd_diff": {r["name"]: r["elpd_diff"] for r in d.versus_baseline.to_dict("records")},
+            "summary": f"cause {d.cause}, {len(d.candidates)} candidates sampled"}
+
+
 BENCHES = {
     "fit_drogue": lambda: bench_fit(next(p for p in example_bundles() if p.name.startswith("drogue"))),
     "fit_main": lambda: bench_fit(next(p for p in example_bundles() if p.name.startswith("main"))),
+    "diagnose_drogue": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("drogue")),
+                                              "full"),
+    "diagnose_main": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("main")), "full"),
+    "diagnose_screen_main": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("main")),
+                                                   "screen"),
 }
 
 
@@ -64,17 +89,21 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results.json"))
     parser.add_argument("--only", default=",".join(BENCHES), help="comma-separated subset of " + ", ".join(BENCHES))
     args = parser.parse_args(argv)
-    results = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
-                           "cpas_bayes": __version__}}
+    results = json.loads(args.out.read_text()) if args.out.is_file() else {}
+    results["machine"] = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
+                          "cpas_bayes": __version__}
     for name in args.only.split(","):
         print(f"running {name} ...", flush=True)
         results[name] = BENCHES[name]()
-    print(f"\n{'benchmark':<12} {'wall [s]':>9} {'ESS/s':>8} {'R-hat':>7} {'N-M [s]':>8} {'ratio':>6}")
+    print(f"\n{'benchmark':<22} {'wall [s]':>9}  notes")
     for name, r in results.items():
         if name == "machine":
             continue
-        print(f"{name:<12} {r['posterior_wall_s']:9.1f} {r['ess_per_s']:8.0f} {r['rhat_max']:7.4f} "
-              f"{r['nelder_mead_wall_s']:8.1f} {r['posterior_over_point_fit']:6.2f}")
+        if "posterior_wall_s" in r:
+            print(f"{name:<22} {r['posterior_wall_s']:9.1f}  ESS/s {r['ess_per_s']:.0f}, R-hat {r['rhat_max']:.4f}, "
+                  f"Nelder-Mead {r['nelder_mead_wall_s']:.1f} s (ratio {r['posterior_over_point_fit']:.1f})")
+        else:
+            print(f"{name:<22} {r['wall_s']:9.1f}  {r['summary']}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2, default=float) + "\n")
     print(f"\nwrote {args.out}")

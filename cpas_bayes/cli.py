@@ -19,6 +19,7 @@ import click
 from . import __version__
 from .bundle import read_bundle, summary
 from .errors import InputError
+from .campaign import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
 
@@ -339,6 +340,40 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers):
     for reason in diagnosis.reasons:
         click.echo(f"  - {reason}")
     click.echo(f"wrote {path}, {out / 'diagnosis.md'} and the figures")
+
+
+@cli.command("campaign", epilog="A campaign TOML (--config), every key optional:\n\n"
+             + "\n\n".join("\b\n" + part for part in CAMPAIGN_EXAMPLE.strip().split("\n\n")))
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for every step's outputs and the report (index.html, report.md).")
+@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None,
+              help="Campaign TOML with the options (see below).")
+@click.option("--workers", type=int, default=None, help="Processes running ensembles at once (overrides --config).")
+@click.option("--diagnose", "diagnose_mode", type=click.Choice(["screen", "full", "off"]), default=None,
+              help="Diagnosis of each test (overrides --config; default screen).")
+def campaign_command(folder, out, config_path, workers, diagnose_mode):
+    """From a folder of flight-test bundles to a model memo, Monte Carlo, load comparisons and a report.
+
+    Validates every bundle in FOLDER, reduces, fits, diagnoses and pools them,
+    runs the Monte Carlo of each cluster configuration and the load
+    comparisons, and writes OUT/index.html. A rerun skips every step whose
+    inputs (bundle bytes, priors, options) have not changed.
+    """
+    from dataclasses import replace
+
+    from .campaign import CampaignConfig, load_config, run_campaign
+
+    config = load_config(config_path) if config_path else CampaignConfig()
+    if workers is not None:
+        config = replace(config, workers=workers)
+    if diagnose_mode is not None:
+        config = replace(config, diagnose=diagnose_mode)
+    result = run_campaign(folder, out, config, echo=click.echo)
+    ran = sum(s.status == "ran" for s in result.steps)
+    click.echo(f"{len(result.tests)} tests, {ran} steps run, {len(result.steps) - ran} kept, "
+               f"{result.seconds:.0f} s; causes: "
+               + ", ".join(f"{t} {c}" for t, c in result.causes.items() if c not in (None, "none")) or "none")
 
 
 # -- commands added by later capabilities go above this line --

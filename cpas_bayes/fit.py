@@ -495,13 +495,17 @@ def prepare_model(test, reduction=None, priors=None, decay="linear", extensions=
 
 
 def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=None, echo=None,
-              guesses=None) -> Fit:
-    """Sample ``model``'s posterior; write ``posterior.nc`` and ``summary.json`` into ``out`` if given."""
+              guesses=None, checkpoint_dir=None) -> Fit:
+    """Sample ``model``'s posterior; write ``posterior.nc`` and ``summary.json`` into ``out`` if given.
+
+    Checkpoints go to ``checkpoint_dir`` (default ``out/checkpoint``); none without either.
+    """
     from .posterior import POSTERIOR_NAME, build_datatree, build_summary, convergence, save_datatree, write_summary
 
     out = Path(out) if out else None
-    sampling = sample_posterior(model, options, checkpoint_dir=out / "checkpoint" if out else None, echo=echo,
-                                guesses=guesses)
+    if checkpoint_dir is None and out is not None:
+        checkpoint_dir = out / "checkpoint"
+    sampling = sample_posterior(model, options, checkpoint_dir=checkpoint_dir, echo=echo, guesses=guesses)
     tree = build_datatree(model, sampling, np.random.default_rng([options.seed, 99]))
     diagnostics = convergence(tree, sampling)
     summary = build_summary(model, tree, diagnostics, options)
