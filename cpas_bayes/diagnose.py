@@ -34,8 +34,12 @@ Procedure (``diagnose_test``)
      with real elpd gains; they are not causes,
    * if the runner-up physical candidate also gains more than ``min_gain``,
      the best leads it by more than ``min_margin_se`` (2) standard errors of
-     their paired difference: two terms that explain the same misfit equally
-     well do not name one of them.
+     their paired difference, or by more than ``min_gain`` with at least
+     ``min_margin_ratio`` (1.5) times its gain: two terms that explain the
+     same misfit about equally well do not name one of them. (The ratio
+     matters for strong effects, where a runner-up term bent to its prior's
+     edges also gains hundreds and the paired se, carried by a few bins, is
+     large.)
 
    Why 10 and 2 se rather than the common "4 and 4 se": the effects sought act
    in a few transients (a fill, a peak), so the pointwise elpd differences are
@@ -89,6 +93,7 @@ class DiagnoseOptions:
     min_gain: float = 10.0
     min_gain_se: float = 2.0
     min_margin_se: float = 2.0
+    min_margin_ratio: float = 1.5
     sampler: SamplerOptions = DIAGNOSIS_SAMPLER
     priors: object = None
     decay: str = "linear"
@@ -338,10 +343,13 @@ def name_cause(baseline, candidates, options: DiagnoseOptions):
     if len(physical) > 1:
         second = physical.iloc[1]
         diff, se = paired_difference(candidates[best["name"]], candidates[second["name"]])
-        if second["elpd_diff"] > options.min_gain and diff <= options.min_margin_se * se:
+        clear = diff > options.min_margin_se * se or (
+            diff > options.min_gain and best["elpd_diff"] >= options.min_margin_ratio * second["elpd_diff"])
+        if second["elpd_diff"] > options.min_gain and not clear:
             ok = False
             reasons.append(f"{best['name']} is not clearly ahead of {second['name']} ({diff:.1f} ± {se:.1f}; "
-                           f"the rule needs > {options.min_margin_se:g} se)")
+                           f"the rule needs > {options.min_margin_se:g} se, or > {options.min_gain:g} and "
+                           f"{options.min_margin_ratio:g}× its gain)")
         else:
             reasons.append(f"{best['name']} leads {second['name']} by {diff:.1f} ± {se:.1f}")
     if ok:
@@ -621,7 +629,8 @@ def diagnosis_document(d: Diagnosis):
                  "text": f"the physical term with the largest elpd gain is named when the gain is > "
                          f"{o.min_gain:g} and > {o.min_gain_se:g} se, it beats correlated_noise, and, when the next "
                          f"physical term also gains > {o.min_gain:g}, it leads that term by > {o.min_margin_se:g} "
-                         "se of their paired difference; otherwise none",
+                         f"se of their paired difference or by > {o.min_gain:g} with {o.min_margin_ratio:g}x its "
+                         "gain; the named term's size must pass its practical floor; otherwise none",
                  "loo": "PSIS-LOO per time bin on the joint log-likelihood of all channels of the bin; "
                         "correlated_noise uses the AR-conditional log p(y_t | y_t-1)"},
         "mode": o.mode,

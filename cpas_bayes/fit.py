@@ -254,13 +254,28 @@ def laplace_covariance(model: TestModel, theta):
     return cov_z * np.outer(scale, scale)
 
 
+def _reflect_into(x, lo, hi):
+    """Reflect coordinates that left [lo, hi] back inside (a MAP on a bound keeps its spread)."""
+    x = np.where(x < lo, 2 * lo - x, x)
+    x = np.where(x > hi, 2 * hi - x, x)
+    return np.clip(x, lo, hi)
+
+
 def initial_walkers(model, theta_map, cov, n_walkers, rng, spread=1.0):
-    """Walkers drawn from N(MAP, spread²·Σ), redrawn where the prior is zero."""
+    """Walkers drawn from N(MAP, spread²·Σ), reflected into the prior's support, redrawn where the
+    posterior is still zero.
+
+    Reflection (not rejection) keeps the ball's width along a parameter whose
+    MAP sits on a bound; rejecting there and shrinking the ball would make the
+    walkers nearly collinear, which emcee refuses.
+    """
     chol = np.linalg.cholesky(cov + 1e-12 * np.eye(cov.shape[0]) * np.max(np.diag(cov)))
+    support = np.array([p.prior.support for p in model.parameters], dtype=float)
     out = np.empty((n_walkers, theta_map.size))
     filled = 0
     for _ in range(1000):
         trial = theta_map + spread * rng.standard_normal((n_walkers, theta_map.size)) @ chol.T
+        trial = _reflect_into(trial, support[:, 0], support[:, 1])
         ok = np.isfinite(model(trial))
         take = trial[ok][: n_walkers - filled]
         out[filled:filled + take.shape[0]] = take

@@ -125,7 +125,8 @@ def _comparison_section(out, manifest):
         doc = _read(out / "tests" / name / "compare" / "compare.json")
         if not doc:
             continue
-        unit = doc.get("units", "")
+        units = doc.get("units", {})
+        unit = units.get("force", "") if isinstance(units, dict) else str(units)
         for st in doc["stages"]:
             acc = st["measured"]["accelerometer"]
             pop = st["comparisons"].get("population", {}).get("accelerometer", {})

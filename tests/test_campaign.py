@@ -61,7 +61,7 @@ name = "test campaign"
 workers = 1
 [fit]
 ensembles = 1
-max_steps = 1500
+max_steps = 1000
 tau_factor = 10
 [montecarlo]
 runs = 400
