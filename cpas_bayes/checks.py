@@ -656,6 +656,11 @@ class ResidualReport:
     noise: dict              # error multiplier -> {mean, q05, q95}
     elpd_loo: dict
 
+    def overall(self, channel):
+        """The channel's whole-record row of :attr:`table` (phase ``all``)."""
+        t = self.table
+        return t[(t["channel"] == channel) & (t["phase"] == "all")].iloc[0]
+
 
 def stage_timing_medians(fit):
     """Posterior medians per parachute: (starts (K,), t_fp (K,), t_k (K,), infinite)."""

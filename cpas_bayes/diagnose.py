@@ -69,7 +69,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .extensions import PHYSICAL, make_extension
+from .extensions import EXTENSIONS, PHYSICAL, make_extension
 from .fit import Fit, SamplerOptions, fit_model, prepare_model
 
 CANDIDATES = PHYSICAL + ("correlated_noise",)
@@ -319,7 +319,7 @@ def name_cause(baseline, candidates, options: DiagnoseOptions):
     best = physical.iloc[0]
     reasons = []
     ok = True
-    floor = make_extension(best["name"]).practical_floor
+    floor = EXTENSIONS[best["name"]].practical_floor
     if floor is not None:
         param, size = floor
         median = extension_parameters(candidates[best["name"]])[param]["median"]
@@ -402,7 +402,8 @@ def extension_parameters(candidate: CandidateFit):
 
 def fit_quality(candidate: CandidateFit, rng):
     """Per channel: RMSE of the posterior-mean prediction (m²), 90 % predictive-band coverage
-    of the data, lag-1 ACF of the standardised residuals; error multipliers; peak loads."""
+    of the data, lag-1 ACF of the standardised residuals; error multipliers; peak loads; the
+    residual report and the mean predictions (acc (N,), lc (L, N)) for the figures."""
     from . import checks as chk
 
     fit = candidate.fit
@@ -421,12 +422,11 @@ def fit_quality(candidate: CandidateFit, rng):
         r = rep[key].reshape(-1, *rep[key].shape[2:])
         r = r if row is None else r[:, row, :]
         lo, hi = np.quantile(r, ((1 - BAND) / 2, (1 + BAND) / 2), axis=0)
-        t = report.table
-        acf1 = float(t[(t["channel"] == channel) & (t["phase"] == "all")]["acf1"].iloc[0])
         channels[channel] = {"rmse_m2": float(np.sqrt(np.mean((y - m) ** 2))),
-                             "coverage_90": float(np.mean((y >= lo) & (y <= hi))), "acf1": acf1}
+                             "coverage_90": float(np.mean((y >= lo) & (y <= hi))),
+                             "acf1": float(report.overall(channel)["acf1"])}
     return {"channels": channels, "noise": report.noise, "peaks": peak_comparison(fit, tree),
-            "residuals": report}
+            "residuals": report, "means": (mean["acc"], mean["lc"].reshape(obs.lc.shape))}
 
 
 def peak_comparison(fit, tree):
@@ -574,7 +574,9 @@ def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=
         ext_q = fit_quality(candidates[shown], rng)
         gain = gain_table(base_q, ext_q, float(row["elpd_diff"]), float(row["elpd_diff_se"]), shown)
         gain["named"] = cause != "none"
+        # for the figures, not the JSON
         gain["residuals"] = {"baseline": base_q["residuals"], "extended": ext_q["residuals"]}
+        gain["means"] = {"baseline": base_q["means"], "extended": ext_q["means"]}
     moved = {name: moved_parameters(baseline, c) for name, c in candidates.items()}
     comparison = compare_table(baseline, candidates) if candidates else pd.DataFrame()
     return Diagnosis(test=test.name, baseline=baseline, candidates=candidates, comparison=comparison,
@@ -616,10 +618,10 @@ def diagnosis_document(d: Diagnosis):
     for name, r in d.screen.items():
         if name in d.candidates:
             continue
-        size = {} if r.size is None else {make_extension(name).practical_floor[0]: {"map": r.size}}
+        size = {} if r.size is None else {EXTENSIONS[name].practical_floor[0]: {"map": r.size}}
         rows.append({"name": name, "elpd_diff": None, "elpd_diff_se": None, "params": size, "physical": True,
                      "screened_out": True, "map_gain": r.map_gain, "seconds": r.seconds})
-    gain = {k: v for k, v in d.gain.items() if k != "residuals"}
+    gain = {k: v for k, v in d.gain.items() if k not in ("residuals", "means")}
     o = d.options
     return jsonable({
         "test": d.test,
@@ -721,7 +723,6 @@ def write_diagnosis(d: Diagnosis, out):
     """Write ``diagnosis.json``, ``diagnosis.md``, the tables and the figures into ``out``."""
     import matplotlib.pyplot as plt
 
-    from . import checks as chk
     from .fileio import save_figure, write_csv, write_json, write_text
     from .plots import diagnose as figs
     from .plots.fit import plot_loo_pit, plot_ppc, plot_residuals
@@ -749,23 +750,17 @@ def write_diagnosis(d: Diagnosis, out):
         name = d.gain["extension"]
         reports = d.gain["residuals"]
         save(figs.plot_residual_comparison(reports["baseline"], reports["extended"], name, d.test), "residuals.png")
-        base, ext = d.baseline.fit, d.candidates[name].fit
-        obs = base.model.obs
-        means = []
-        for f in (base, ext):
-            theta = chk.posterior_matrix(f.tree, f.model.names).reshape(-1, f.model.ndim)
-            theta = theta[:: max(1, theta.shape[0] // 200)]
-            p = chk.predict_draws(f.model, theta)
-            means.append((p["acc"].mean(axis=0), p["lc"].mean(axis=0)))
-        channels = [("accelerometer drag area (Eq. 8)", obs.acc, means[0][0], means[1][0])]
+        model = d.baseline.fit.model
+        obs = model.obs
+        (base_acc, base_lc), (ext_acc, ext_lc) = d.gain["means"]["baseline"], d.gain["means"]["extended"]
+        channels = [("accelerometer drag area (Eq. 8)", obs.acc, base_acc, ext_acc)]
         for row, chute in enumerate(obs.lc_index):
-            pid = base.model.parachutes[int(chute)].id
-            channels.append((f"load cell {pid}", obs.lc[row], means[0][1][row], means[1][1][row]))
-        infinite = all(p.inflation == "infinite" for p in base.model.parachutes)
-        window = _change_window(obs.time, channels[0][2], channels[0][3], channels[0][1], 1.0 if infinite else 4.0)
-        if len(channels) > 1:   # the load cells carry lag and friction effects: take the strongest channel
-            best = max(channels, key=lambda c: np.sum((c[1] - c[2]) ** 2 - (c[1] - c[3]) ** 2))
-            window = _change_window(obs.time, best[2], best[3], best[1], 1.0 if infinite else 4.0)
+            pid = model.parachutes[int(chute)].id
+            channels.append((f"load cell {pid}", obs.lc[row], base_lc[row], ext_lc[row]))
+        infinite = all(p.inflation == "infinite" for p in model.parachutes)
+        # zoom on the channel the term improves most (load cells carry lag and friction effects)
+        best = max(channels, key=lambda c: np.sum((c[1] - c[2]) ** 2 - (c[1] - c[3]) ** 2))
+        window = _change_window(obs.time, best[2], best[3], best[1], 1.0 if infinite else 4.0)
         save(figs.plot_fit_comparison(obs.time, channels, units, name, d.test, window), "comparison.png")
     write_text(out / "diagnosis.md", diagnosis_markdown(d, units))
     write_json(out / DIAGNOSIS_NAME, diagnosis_document(d))   # last: its presence marks a complete diagnosis

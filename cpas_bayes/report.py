@@ -45,16 +45,13 @@ def _summary_section(out, manifest):
              "test?), then each test's evidence.", "",
              "## Diagnoses", "",
              "| test | configuration | cause | in words |", "|---|---|---|---|"]
-    configs = {}
     for name in manifest["tests"]:
-        s = _read(out / "tests" / name / "fit" / "summary.json") or {}
-        configs[name] = " + ".join(sorted({f"{p['kind']}" for p in s.get("parachutes", {}).values()}))
-    for name in manifest["tests"]:
+        chutes = (_read(out / "tests" / name / "fit" / "summary.json") or {}).get("parachutes", {})
+        kinds = " + ".join(sorted({p["kind"] for p in chutes.values()}))
         d = _read(out / "tests" / name / "diagnosis" / "diagnosis.json")
         cause = causes.get(name)
         words = "diagnosis off" if d is None else (d["reasons"][0] if d.get("reasons") else "")
-        lines.append(f"| {name} | {len(_read(out / 'tests' / name / 'fit' / 'summary.json')['parachutes'])} × "
-                     f"{configs[name]} | **{cause or '—'}** | {words} |")
+        lines.append(f"| {name} | {len(chutes)} × {kinds} | **{cause or '—'}** | {words} |")
     named = [n for n, c in causes.items() if c and c != "none"]
     lines += ["", (f"Named causes in {len(named)} test(s): " + ", ".join(f"{n} ({causes[n]})" for n in named)
                    + ". Tests with a measurement cause (friction drift, sensor lag) enter the memo with their "

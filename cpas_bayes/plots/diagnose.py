@@ -20,9 +20,7 @@ matplotlib.use("Agg")
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
-
-from .fit import _PHASE_COLORS, _phase_segments  # noqa: E402
+from .fit import finish_residual_figure, shade_phases  # noqa: E402
 
 _BASE = "0.45"
 _EXT = "#d95f02"
@@ -82,29 +80,24 @@ def plot_residual_comparison(baseline_report, extended_report, name, test_name):
     t = baseline_report.time
     for r, channel in enumerate(channels):
         ax = axes[r, 0]
-        for t0, t1, label in _phase_segments(t, baseline_report.phases[channel]):
-            ax.axvspan(t0, t1, color=_PHASE_COLORS[label], lw=0, zorder=0)
+        shade_phases(ax, t, baseline_report.phases[channel])
         rb = baseline_report.residuals[channel]
         re = extended_report.residuals[channel]
         ax.plot(t, rb, ".", ms=2.5, color=_BASE, zorder=2, label="baseline")
         ax.plot(t, re, ".", ms=2.5, color=_EXT, zorder=3, label=f"with {name.replace('_', ' ')}")
         for level in (-2, 2):
             ax.axhline(level, color="k", ls="--", lw=0.7)
-        tb, te = baseline_report.table, extended_report.table
-        acf_b = float(tb[(tb["channel"] == channel) & (tb["phase"] == "all")]["acf1"].iloc[0])
-        acf_e = float(te[(te["channel"] == channel) & (te["phase"] == "all")]["acf1"].iloc[0])
+        acf_b = float(baseline_report.overall(channel)["acf1"])
+        acf_e = float(extended_report.overall(channel)["acf1"])
         ax.set_title(f"{channel}: sd {np.std(rb):.2f} → {np.std(re):.2f}, lag-1 ACF {acf_b:+.2f} → {acf_e:+.2f}",
                      fontsize=9)
         ax.set_ylabel("standardised\nresidual [-]", fontsize=8)
         ax.grid(alpha=0.3)
         if r == 0:
             handles, _ = ax.get_legend_handles_labels()
-    phase_handles = [Patch(color=c, label=f"phase: {p.replace('_', ' ')}") for p, c in _PHASE_COLORS.items()]
-    fig.legend(handles=handles + phase_handles, loc="lower center", ncol=4, fontsize=8)
-    fig.get_layout_engine().set(rect=(0, 0.07, 1, 0.93))
-    axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle(f"{test_name}: residuals before (grey) and after adding {name.replace('_', ' ')} (orange) — "
-                 "a real cause turns waves and runs into white noise", fontsize=10)
+    finish_residual_figure(fig, axes, handles, 0.07,
+                           f"{test_name}: residuals before (grey) and after adding {name.replace('_', ' ')} "
+                           "(orange) — a real cause turns waves and runs into white noise")
     return fig
 
 

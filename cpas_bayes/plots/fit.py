@@ -108,6 +108,15 @@ def _save(fig, path):
 # bands.png
 
 
+def _cluster_stage_window(model, timing, k):
+    """Parachutes having stage k, and the zoom window around their stage-k starts (ZOOM by inflation)."""
+    having = [p for p in model.parachutes if len(p.stages) > k]
+    first = min(timing[p.id][0][k] for p in having)
+    last = max(timing[p.id][0][k] for p in having)
+    before, after = ZOOM["finite" if any(p.inflation == "finite" for p in having) else "infinite"]
+    return having, first - before, last + after
+
+
 def plot_bands(fit, pred):
     """Drag-area data with posterior bands, one column per parachute plus the accelerometer."""
     model, obs, tree = fit.model, fit.model.obs, fit.tree
@@ -157,13 +166,8 @@ def plot_bands(fit, pred):
             ax.set_title("cluster: accelerometer against the summed model")
             ax.legend(fontsize=7, loc="upper left")
         else:
-            k = row - 1
-            having = [p for p in model.parachutes if len(p.stages) > k]
-            first = min(timing[p.id][0][k] for p in having)
-            last = max(timing[p.id][0][k] for p in having)
-            inflation = "finite" if any(p.inflation == "finite" for p in having) else "infinite"
-            before, after = ZOOM[inflation]
-            _zoom(ax, t, first - before, last + after, acc_bands, acc_data)
+            _, t0, t1 = _cluster_stage_window(model, timing, row - 1)
+            _zoom(ax, t, t0, t1, acc_bands, acc_data)
             ax.set_title(f"cluster stage {row}: the sum of the individual fills", fontsize=9)
     fig.suptitle(f"{model.test.name}: reconstructed drag areas — the posterior bands of the model (its "
                  "uncertainty, not the noise)\nshould run through the middle of the points, fill, peak and decay "
@@ -220,12 +224,8 @@ def plot_loads(fit, pred, rng):
             ax.set_title("whole test")
             continue
         k = j - 1
-        having = [p for p in model.parachutes if len(p.stages) > k]
-        first = min(timing[p.id][0][k] for p in having)
-        last = max(timing[p.id][0][k] for p in having)
-        inflation = "finite" if any(p.inflation == "finite" for p in having) else "infinite"
-        before, after = ZOOM[inflation]
-        _zoom(ax, t, first - before, last + after, model_bands, data, predictive)
+        having, t0, t1 = _cluster_stage_window(model, timing, k)
+        _zoom(ax, t, t0, t1, model_bands, data, predictive)
         _mark_starts(ax, [timing[p.id][0][k] for p in having], label=False)
         ax.set_title(f"stage {k + 1} ({having[0].stages[k].label}): peak load", fontsize=9)
     fig.suptitle(f"{model.test.name}: total inflation load — the peak of the data should fall inside the "
@@ -450,18 +450,31 @@ def _phase_segments(time, labels):
     return [(edges[a], edges[b], labels[a]) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def shade_phases(ax, time, labels):
+    """Shade each flight phase's run of bins behind a residual panel."""
+    for t0, t1, label in _phase_segments(time, labels):
+        ax.axvspan(t0, t1, color=_PHASE_COLORS[label], lw=0, zorder=0)
+
+
+def finish_residual_figure(fig, axes, handles, bottom, title):
+    """Common legend (series + phases) under the panels, time axis label and title."""
+    phase_handles = [Patch(color=c, label=f"phase: {name.replace('_', ' ')}") for name, c in _PHASE_COLORS.items()]
+    fig.legend(handles=handles + phase_handles, loc="lower center", ncol=4, fontsize=8)
+    fig.get_layout_engine().set(rect=(0, bottom, 1, 1 - bottom))
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle(title, fontsize=10)
+
+
 def plot_residuals(report):
     """Standardised residuals against time per channel, phases shaded, high Pareto-k bins marked."""
     channels = list(report.residuals)
     fig, axes = plt.subplots(len(channels), 1, figsize=(12, 2.6 * len(channels) + 1), constrained_layout=True,
                              sharex=True, squeeze=False)
     t = report.time
-    table = report.table
     for r, channel in enumerate(channels):
         ax = axes[r, 0]
         res = report.residuals[channel]
-        for t0, t1, label in _phase_segments(t, report.phases[channel]):
-            ax.axvspan(t0, t1, color=_PHASE_COLORS[label], lw=0, zorder=0)
+        shade_phases(ax, t, report.phases[channel])
         ax.plot(t, res, ".", ms=2.5, color=_DATA, zorder=2, label="standardised residual")
         for level in (-2, 2):
             ax.axhline(level, color="k", ls="--", lw=0.7, label="±2" if level == 2 else None)
@@ -470,19 +483,16 @@ def plot_residuals(report):
             top = np.nanmax(np.abs(res)) if res.size else 1.0
             ax.plot(hk["time"], np.full(hk.shape[0], top), "v", color="crimson", ms=6, zorder=3,
                     label=f"Pareto k > {chk.PARETO_K_LIMIT} (all channels of the bin)")
-        row = table[(table["channel"] == channel) & (table["phase"] == "all")].iloc[0]
+        row = report.overall(channel)
         ax.set_title(f"{channel}: mean {row['mean']:+.2f}, sd {row['sd']:.2f}, lag-1 ACF {row.acf1:+.2f}, "
                      f"Ljung–Box p = {row.ljung_box_p:.2g}", fontsize=9)
         ax.set_ylabel("(y − E[ŷ]) / (λ̄σ) [-]", fontsize=8)
         ax.grid(alpha=0.3)
         if r == 0:
             handles, _ = ax.get_legend_handles_labels()
-    phase_handles = [Patch(color=c, label=f"phase: {name.replace('_', ' ')}") for name, c in _PHASE_COLORS.items()]
-    fig.legend(handles=handles + phase_handles, loc="lower center", ncol=4, fontsize=8)
-    fig.get_layout_engine().set(rect=(0, 0.06, 1, 0.94))
-    axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle("Standardised residuals: should look like white noise of sd 1 in every phase — runs, waves or "
-                 "offsets in a phase point at what the model misses", fontsize=10)
+    finish_residual_figure(fig, axes, handles, 0.06,
+                           "Standardised residuals: should look like white noise of sd 1 in every phase — runs, "
+                           "waves or offsets in a phase point at what the model misses")
     return fig
 
 
