@@ -220,46 +220,66 @@ def _stage_value(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, linear):
 
 
 @numba.njit(cache=True)
+def _parachute_stages(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
+                      n_stages, linear, fill_is_np, t_sorted, out, t_f_out, t_fp_out, n_out, held_out):
+    """One parachute's stages (arrays (K,)): drag area at ``t`` (N,) into ``out`` (N,), timing into (K,).
+
+    Writes only the bins inside a stage, so ``out`` must hold zeros before the first
+    start. With ``t_sorted`` (ascending ``t``) each stage visits only its own bins.
+    Shared by :func:`_drag_area_kernel` and the model's fused likelihood, so the
+    stage law has one compiled form.
+    """
+    N = t.shape[0]
+    held = 0.0
+    for k in range(n_stages):
+        cds_i = cds_stage[k]
+        growth = cds_i - held
+        if growth > 0.0:
+            ratio = (ck[k] * cds_i - held) / growth
+        else:
+            ratio = 1.0
+        r_pow = ratio ** (1.0 / expopen[k])
+        if fill_is_np:
+            n = n_fill[k] / r_pow
+        else:
+            n = n_fill[k]
+        if growth > 0.0:
+            t_f = n * diameter * np.sqrt(growth / cds_o) / v_start[k]
+        else:
+            t_f = 0.0
+        t_fp = t_f * r_pow if t_f > 0.0 else 0.0
+        t_f_out[k] = t_f
+        t_fp_out[k] = t_fp
+        n_out[k] = n
+        held_out[k] = held
+        t0 = start[k]
+        t1 = start[k + 1] if k + 1 < n_stages else np.inf
+        if t_sorted:
+            i = np.searchsorted(t, t0)
+            while i < N and t[i] < t1:
+                out[i] = _stage_value(t[i] - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
+                i += 1
+        else:
+            for i in range(N):
+                ti = t[i]
+                if ti >= t0 and ti < t1:
+                    out[i] = _stage_value(ti - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
+        if k + 1 < n_stages:
+            held = _stage_value(t1 - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
+
+
+@numba.njit(cache=True)
 def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
                       n_stages, linear, fill_is_np, out, t_f_out, t_fp_out, n_out, held_out):
-    B, P, K = start.shape
-    N = t.shape[1]
+    B, P = start.shape[:2]
     per_walker_time = t.shape[0] > 1
     for b in range(B):
         tb = b if per_walker_time else 0
         for p in range(P):
-            held = 0.0
-            for k in range(n_stages[p]):
-                cds_i = cds_stage[b, p, k]
-                growth = cds_i - held
-                if growth > 0.0:
-                    ratio = (ck[b, p, k] * cds_i - held) / growth
-                else:
-                    ratio = 1.0
-                r_pow = ratio ** (1.0 / expopen[b, p, k])
-                if fill_is_np:
-                    n = n_fill[b, p, k] / r_pow
-                else:
-                    n = n_fill[b, p, k]
-                if growth > 0.0:
-                    t_f = n * diameter[p] * np.sqrt(growth / cds_o[b, p]) / v_start[b, p, k]
-                else:
-                    t_f = 0.0
-                t_fp = t_f * r_pow if t_f > 0.0 else 0.0
-                t_f_out[b, p, k] = t_f
-                t_fp_out[b, p, k] = t_fp
-                n_out[b, p, k] = n
-                held_out[b, p, k] = held
-                t0 = start[b, p, k]
-                t1 = start[b, p, k + 1] if k + 1 < n_stages[p] else np.inf
-                for i in range(N):
-                    ti = t[tb, i]
-                    if ti >= t0 and ti < t1:
-                        out[b, p, i] = _stage_value(ti - t0, held, cds_i, t_f, t_fp, expopen[b, p, k],
-                                                    ck[b, p, k], t_k[b, p, k], linear)
-                if k + 1 < n_stages[p]:
-                    held = _stage_value(t1 - t0, held, cds_i, t_f, t_fp, expopen[b, p, k],
-                                        ck[b, p, k], t_k[b, p, k], linear)
+            _parachute_stages(t[tb], start[b, p], cds_stage[b, p], cds_o[b, p], diameter[p], n_fill[b, p],
+                              expopen[b, p], ck[b, p], t_k[b, p], v_start[b, p], n_stages[p], linear,
+                              fill_is_np, False, out[b, p], t_f_out[b, p], t_fp_out[b, p], n_out[b, p],
+                              held_out[b, p])
 
 
 def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,

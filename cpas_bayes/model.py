@@ -37,6 +37,10 @@ no added mass, ideal sensors up to the load-cell scale, independent errors.
 Extensions (:mod:`cpas_bayes.extensions`) plug into the hooks of step 2 and 4
 without copying the model.
 
+For the sampler, the baseline's total log-likelihood runs steps 1, 3 and 4 in
+one compiled loop per walker (:func:`_baseline_quadratic_form`); the numpy
+pipeline above stays the reference (``predict``, pointwise values, extensions).
+
 Parameter names: ``<chute>.cds_o``, ``<chute>.s<k>.<name>`` for stage k (1-based)
 and name in start, n_p, expopen, ck, tk, eps; ``vehicle_weight``,
 ``vehicle_cds``, ``load_scale``, ``noise_acc``, ``noise_lc``; extensions add
@@ -48,10 +52,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from .bundle import FlightTest
-from .inflation import cluster_drag_area
+from .inflation import DECAY_SHAPES, _parachute_stages, cluster_drag_area
 from .observations import Observations
 from .priors import KindPriors, Normal, NuisancePriors, PriorSet, TruncNormal, stage_role
 
@@ -137,6 +142,81 @@ class Extension:
         return None
 
 
+@numba.njit(cache=True)
+def _interp(x, xp, fp):
+    """np.interp at one point (same formula and end clamping), without numba's per-call array."""
+    n = xp.shape[0]
+    if np.isnan(x):
+        return x
+    if x < xp[0]:
+        return fp[0]
+    j = np.searchsorted(xp, x, side="right") - 1
+    if j >= n - 1 or xp[j] == x:
+        return fp[j]
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    return slope * (x - xp[j]) + fp[j]
+
+
+@numba.njit(cache=True)
+def _baseline_quadratic_form(theta, consts, gather, cds_o_index, diameter, n_stages, linear, native_time,
+                             native_airspeed, t, acc_obs, lc_obs, lc_weight_term, lc_index, scalars,
+                             stated_vehicle_cds, stated_total_weight, chute_weight_sum,
+                             w_acc, a_acc, w_lc, a_lc, inv_denom, out):
+    """Σ over bins of r̃ᵀ(D + uuᵀ)⁻¹r̃ per walker (B,) into ``out``: predict + _quadratic_form fused.
+
+    ``gather`` (6, P, K) indexes θ for start, n_p, expopen, ck, tk, eps (≥ D: ``consts``);
+    ``scalars`` the columns of vehicle_weight, vehicle_cds, noise_acc, load_scale, noise_lc.
+    Scratch is one walker's (P, N) drag areas and (N,) sums, so memory stays small for any batch.
+    """
+    B, D = theta.shape
+    P, K = gather.shape[1], gather.shape[2]
+    N = t.shape[0]
+    L = lc_index.shape[0]
+    cds = np.empty((P, N))
+    stage = np.empty((7, K))      # start, n_p, expopen, ck, tk, cds_stage, v_start
+    timing = np.empty((4, K))     # unused outputs of the stage law
+    shared = np.empty(N)          # Σ_c r̃_c·u_c/d_c² per bin
+    diag = np.empty(N)            # Σ_c r̃_c²/d_c² per bin
+    for b in range(B):
+        for p in range(P):
+            cds_o = theta[b, cds_o_index[p]]
+            for k in range(n_stages[p]):
+                for j in range(6):
+                    g = gather[j, p, k]
+                    stage[j, k] = theta[b, g] if g < D else consts[g - D]
+                stage[5, k] *= cds_o
+                stage[6, k] = _interp(stage[0, k], native_time, native_airspeed)
+            cds[p, :] = 0.0
+            _parachute_stages(t, stage[0], stage[5], cds_o, diameter[p], stage[1], stage[2], stage[3],
+                              stage[4], stage[6], n_stages[p], linear, True, True, cds[p],
+                              timing[0], timing[1], timing[2], timing[3])
+        weight_ratio = stated_total_weight / (theta[b, scalars[0]] + chute_weight_sum)
+        cds_v = theta[b, scalars[1]]
+        # Reciprocals: divisions in the bin loop would bound its speed.
+        inv_noise_acc = 1.0 / theta[b, scalars[2]]
+        inv_scale = 1.0 / theta[b, scalars[3]] if L > 0 else 1.0
+        inv_noise_lc = 1.0 / theta[b, scalars[4]] if L > 0 else 1.0
+        keep = 1.0 - inv_scale
+        # Channel by channel over the bins (contiguous loops the compiler vectorises).
+        for i in range(N):
+            total = cds[0, i]
+            for p in range(1, P):
+                total += cds[p, i]
+            r = (acc_obs[i] - (weight_ratio * (total + cds_v) - stated_vehicle_cds)) * inv_noise_acc
+            shared[i] = r * a_acc[i]
+            diag[i] = r * r * w_acc[i]
+        for l in range(L):
+            c = lc_index[l]
+            for i in range(N):
+                r = (lc_obs[l, i] - (cds[c, i] * inv_scale + lc_weight_term[l, i] * keep)) * inv_noise_lc
+                shared[i] += r * a_lc[l, i]
+                diag[i] += r * r * w_lc[l, i]
+        quad = 0.0
+        for i in range(N):
+            quad += diag[i] - shared[i] * shared[i] * inv_denom[i]
+        out[b] = quad
+
+
 def _stage_names(k):
     return f"s{k + 1}"
 
@@ -152,6 +232,8 @@ class TestModel:
 
     def __init__(self, test: FlightTest, obs: Observations, kind_priors: dict, nuisance: NuisancePriors,
                  decay="linear", extensions=()):
+        if decay not in DECAY_SHAPES:
+            raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
         self.test = test
         self.obs = obs
         self.decay = decay
@@ -176,6 +258,7 @@ class TestModel:
         self._a_acc = obs.acc_qbar * self._w_acc
         self._a_lc = obs.lc_qbar * self._w_lc
         self._denom = 1.0 + obs.acc_qbar * self._a_acc + (obs.lc_qbar * self._a_lc).sum(axis=0)
+        self._inv_denom = 1.0 / self._denom
         n_channels = 1 + obs.lc.shape[0]
         # Parameter-free part of log N per bin: −½·log det(D + uuᵀ) − ½·C·log 2π.
         self._ll_const = -0.5 * (np.log(obs.acc_sigma**2) + np.log(obs.lc_sigma**2).sum(axis=0)
@@ -253,6 +336,17 @@ class TestModel:
                     gather["start"][i, k] = -2
         self._gather = gather
         self._cds_o_index = np.array([self.index[f"{p.id}.cds_o"] for p in self.parachutes])
+        # The same gather for the fused kernel, which never reads padded stages.
+        stacked = np.stack(list(gather.values()))
+        self._gather_array = np.where(stacked < 0, constants["zero"], stacked).astype(np.int64)
+        # Without load cells there is no load_scale or noise_lc; the kernel then reads neither.
+        self._scalar_index = np.array([self.index.get(n, 0) for n in
+                                       ("vehicle_weight", "vehicle_cds", "noise_acc", "load_scale", "noise_lc")],
+                                      dtype=np.int64)
+        # Columns of each parachute's consecutive stage starts, for the prior's ordering check.
+        pairs = [(gather["start"][i, k], gather["start"][i, k + 1])
+                 for i, n in enumerate(self.stages_per_chute) for k in range(n - 1)]
+        self._start_order = tuple(np.ascontiguousarray(a) for a in np.array(pairs, dtype=np.int64).reshape(-1, 2).T)
 
     def gather_stages(self, theta):
         """Stage arrays (B, P, K) from θ (B, D): start, n_p, expopen, ck, tk, eps, cds_stage."""
@@ -277,10 +371,11 @@ class TestModel:
     # -- prior ----------------------------------------------------------------
 
     def log_prior(self, theta):
+        """Log prior (B,): :attr:`prior_set` with −inf where a parachute's stages are out of order."""
         theta = np.atleast_2d(theta)
         lp = self.prior_set.logpdf(theta)
-        st = self.gather_stages(theta)["start"]
-        ordered = np.all(np.diff(st, axis=-1) > 0, axis=(-1, -2)) if self.n_stages > 1 else True
+        earlier, later = self._start_order
+        ordered = np.all(theta[:, later] > theta[:, earlier], axis=1)
         return np.where(ordered & np.isfinite(lp), lp, -np.inf)
 
     def sample_prior(self, rng, size):
@@ -438,12 +533,31 @@ class TestModel:
     def log_likelihood(self, theta):
         """Total log-likelihood (B,), the sum of :meth:`pointwise_log_likelihood` over bins."""
         theta = np.atleast_2d(theta)
+        if not self.extensions:
+            return self._baseline_log_likelihood(theta)
         pred = self.predict(theta)
         if self.replaces_error_model:
             return self.pointwise_log_likelihood(theta, pred).sum(axis=1)
         quad, _, _ = self._quadratic_form(theta, pred)
         return (-0.5 * quad.sum(axis=1) - self.obs.n_bins * self._log_multipliers(pred)
                 + self._ll_const.sum())
+
+    def _baseline_log_likelihood(self, theta):
+        """log_likelihood without extensions by the fused kernel (the sampler's hot path)."""
+        theta = np.ascontiguousarray(theta, dtype=float)
+        obs = self.obs          # read per call: checks and tests swap in edited observations
+        quad = np.empty(theta.shape[0])
+        _baseline_quadratic_form(
+            theta, self._constants, self._gather_array, self._cds_o_index, self.diameter,
+            self.stages_per_chute, self.decay == "linear", obs.native_time, obs.native_airspeed,
+            obs.time, obs.acc, obs.lc, obs.lc_weight_term, obs.lc_index, self._scalar_index,
+            float(obs.stated_vehicle_cds), float(self.stated_total_weight), float(self.chute_weight.sum()),
+            self._w_acc, self._a_acc, self._w_lc, self._a_lc, self._inv_denom, quad)
+        idx = self._scalar_index
+        log_multipliers = np.log(theta[:, idx[2]])
+        if obs.lc_index.size:
+            log_multipliers = log_multipliers + obs.lc.shape[0] * np.log(theta[:, idx[4]])
+        return -0.5 * quad - obs.n_bins * log_multipliers + self._ll_const.sum()
 
     def log_posterior(self, theta):
         theta = np.atleast_2d(theta)

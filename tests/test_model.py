@@ -1,5 +1,6 @@
 """The test model: compiled stage law, likelihood identities, batching, consistency with data."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -129,3 +130,118 @@ def test_derived_n_matches_the_truth_files(examples):
         for name, value in truth.items():
             if name.endswith(".n"):
                 assert derived[name][0] == pytest.approx(value, rel=1e-6)
+
+
+# ---------------------------------------------------------------------------
+# The fused baseline likelihood against the numpy pipeline
+
+
+def _with_chutes(test, **options):
+    """The model of ``test`` with edited parachutes: {index: dataclasses.replace changes}."""
+    chutes = list(test.parachutes)
+    for i, changes in options.pop("chutes", {}).items():
+        chutes[i] = dataclasses.replace(chutes[i], **changes)
+    return prepare_model(dataclasses.replace(test, parachutes=tuple(chutes)), **options)
+
+
+def _rows_near_first_guess(model, rng, n=40):
+    x = first_guess(model)
+    rows = x + 1e-3 * rng.standard_normal((n, model.ndim)) * np.abs(x + 1e-3)
+    # Edge cases of the stage law: a stage with nothing to fill (the first stage of row 0
+    # held at full open, over-inflated above the second), no decay time, a bin exactly at a start.
+    for name in model.names:
+        if name.endswith(".s1.eps"):
+            rows[0, model.index[name]] = 1.0
+        if name.endswith(".s1.ck"):
+            rows[0, model.index[name]] = 1.4
+        if name.endswith(".tk"):
+            rows[1, model.index[name]] = 0.0
+        if name.endswith(".s2.start"):
+            rows[2, model.index[name]] = model.obs.time[np.searchsorted(model.obs.time, rows[2, model.index[name]])]
+    return rows
+
+
+def _assert_fused_equals_numpy(model, rows):
+    fused = model.log_likelihood(rows)
+    reference = model.pointwise_log_likelihood(rows).sum(axis=1)
+    finite = np.isfinite(reference)
+    assert finite.any()
+    np.testing.assert_array_equal(np.isfinite(fused), finite)
+    np.testing.assert_allclose(fused[finite], reference[finite], rtol=1e-10)
+    # The posterior: the prior plus that likelihood, −inf (never NaN) outside the prior.
+    lp = model.log_prior(rows)
+    post = model.log_posterior(rows)
+    assert not np.isnan(post).any()
+    inside = np.isfinite(lp) & finite
+    np.testing.assert_allclose(post[inside], lp[inside] + reference[inside], rtol=1e-10)
+    assert (post[~np.isfinite(lp)] == -np.inf).all()
+
+
+@pytest.mark.parametrize("name", ["drogue-clean", "main-clean"])
+def test_fused_baseline_likelihood_equals_the_numpy_pipeline(examples, name):
+    test, model, _ = examples[name]
+    assert model.extensions == ()
+    rng = np.random.default_rng(11)
+    _assert_fused_equals_numpy(model, _rows_near_first_guess(model, rng))
+    draws = model.sample_prior(rng, 64)
+    assert np.isfinite(model.log_prior(draws)).sum() > 32
+    _assert_fused_equals_numpy(model, draws)
+    exponential = prepare_model(test, decay="exponential")
+    _assert_fused_equals_numpy(exponential, _rows_near_first_guess(exponential, rng))
+
+
+def test_fused_stage_with_nothing_to_fill_snaps_to_its_value(examples):
+    _, model, _ = examples["drogue-clean"]
+    rows = _rows_near_first_guess(model, np.random.default_rng(5), n=3)
+    pred = model.predict(rows)
+    assert (pred.timing.t_f[0, :, 1] == 0).all() and (pred.timing.t_f[1:, :, 1] > 0).all()
+
+
+def test_fused_likelihood_of_the_accelerometer_alone(examples):
+    test, _, _ = examples["drogue-clean"]
+    model = _with_chutes(test, chutes={i: {"load_cell": None} for i in range(len(test.parachutes))})
+    assert model.obs.lc.shape[0] == 0 and "load_scale" not in model.index and "noise_lc" not in model.index
+    rng = np.random.default_rng(6)
+    _assert_fused_equals_numpy(model, _rows_near_first_guess(model, rng))
+    _assert_fused_equals_numpy(model, model.sample_prior(rng, 64))
+
+
+def test_parachutes_with_different_stage_counts(examples):
+    """A one-stage canopy beside three-stage ones: padded stage slots neither fail the stage-order
+    check of the prior nor enter the fused likelihood."""
+    test, _, _ = examples["main-clean"]
+    model = _with_chutes(test, chutes={0: {"stages": test.parachutes[0].stages[-1:]}})
+    np.testing.assert_array_equal(model.stages_per_chute, [1, 3, 3])
+    rng = np.random.default_rng(8)
+    draws = model.sample_prior(rng, 64)
+    assert np.isfinite(model.log_prior(draws)).sum() > 32
+    assert np.isfinite(model(first_guess(model))).all()
+    _assert_fused_equals_numpy(model, _rows_near_first_guess(model, rng))
+    _assert_fused_equals_numpy(model, draws)
+
+
+def test_log_prior_is_the_prior_set_plus_the_stage_order(examples):
+    for _, model, _ in examples.values():
+        draws = model.sample_prior(np.random.default_rng(9), 200)
+        draws[::7, 3] = np.nan
+        draws[1::7, model.index["noise_acc"]] = -1.0
+        reference = model.prior_set.logpdf(draws)
+        lp = model.log_prior(draws)
+        assert not np.isnan(lp).any()
+        finite = np.isfinite(lp)
+        assert finite.sum() > 100 and not finite[::7].any() and not finite[1::7].any()
+        np.testing.assert_allclose(lp[finite], reference[finite], rtol=1e-12)
+        # What the model's prior refuses beyond the prior set is the stage order alone.
+        earlier, later = model._start_order
+        out_of_order = ~np.all(draws[:, later] > draws[:, earlier], axis=1)
+        np.testing.assert_array_equal(~finite, out_of_order | ~np.isfinite(reference))
+
+
+def test_compiled_point_interpolation_equals_numpy():
+    from cpas_bayes.model import _interp
+    xp = np.cumsum(np.random.default_rng(1).uniform(0.01, 0.1, 50))
+    fp = np.sin(xp)
+    for x in np.r_[xp[0] - 1, xp[0], xp[[3, 17]], 0.5 * (xp[20] + xp[21]), xp[-1], xp[-1] + 1,
+                   np.random.default_rng(2).uniform(xp[0], xp[-1], 20)]:
+        assert _interp(x, xp, fp) == np.interp(x, xp, fp)
+    assert np.isnan(_interp(np.nan, xp, fp))
