@@ -286,14 +286,15 @@ def _reduce_work(test):
     return work
 
 
-def _fit_work(test, config, checkpoint, echo):
+def _fit_work(test, config, checkpoint, echo, executor=None):
     def work(tmp):
         from .checks import check_report, run_checks
         from .fit import fit_model, prepare_model
         from .plots.fit import write_fit_figures
 
         model = prepare_model(test, priors=config.priors, decay=config.decay)
-        fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint)
+        fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint,
+                        executor=executor)
         checks = run_checks(fit, rng=config.seed)
         write_fit_figures(fit, tmp, checks=checks)
         write_json(tmp / "checks.json", check_report(fit, checks=checks))
@@ -322,7 +323,7 @@ def load_baseline_fit(test, folder, config):
     return Fit(model, sampling, load_datatree(folder / POSTERIOR_NAME), summary)
 
 
-def _diagnose_work(test, config, fit_folder, echo):
+def _diagnose_work(test, config, fit_folder, echo, executor=None):
     def work(tmp):
         from .diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test, write_diagnosis
         from .posterior import POSTERIOR_NAME, build_summary, convergence, save_datatree, write_summary
@@ -331,7 +332,7 @@ def _diagnose_work(test, config, fit_folder, echo):
         options = DiagnoseOptions(seed=config.seed, candidates=tuple(config.candidates), priors=config.priors,
                                   decay=config.decay, mode=config.diagnose,
                                   sampler=replace(DIAGNOSIS_SAMPLER, workers=config.workers, progress=False))
-        d = diagnose_test(test, options, baseline_fit=fit, echo=lambda m: echo("    " + m))
+        d = diagnose_test(test, options, baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
         write_diagnosis(d, tmp)
         if d.cause != "none":
             named = d.candidates[d.cause].fit
@@ -371,6 +372,37 @@ def _montecarlo_work(like, memo_folder, config):
 
 
 # ---------------------------------------------------------------------------
+# tasks: what one worker does (top-level functions, so any executor can ship them)
+
+
+def _test_task(job, report=None, executor=None):
+    """Reduce, fit and diagnose one test; returns its step records and the messages not yet shown."""
+    test, config, out, bundle_key, fit_key, diag_key = job
+    log = []
+    echo = report if report is not None else log.append
+    records = []
+    base = out / "tests" / test.name
+    echo(f"{test.name}:")
+    run_step(base / "reduction", bundle_key, _reduce_work(test), records, f"{test.name} reduction", echo)
+    run_step(base / "fit", fit_key, _fit_work(test, config, out / ".checkpoints" / test.name, echo, executor),
+             records, f"{test.name} fit", echo)
+    if diag_key is not None:
+        run_step(base / "diagnosis", diag_key, _diagnose_work(test, config, base / "fit", echo, executor),
+                 records, f"{test.name} diagnosis", echo)
+    return records, log
+
+
+def _pooled_step_task(job, report=None):
+    """A Monte Carlo of one configuration or the load comparison of one test (after the memo)."""
+    kind, folder, key, name, args = job
+    work = _montecarlo_work(*args) if kind == "montecarlo" else _compare_work(*args)
+    log = []
+    records = []
+    run_step(folder, key, work, records, name, report if report is not None else log.append)
+    return records, log
+
+
+# ---------------------------------------------------------------------------
 # the campaign
 
 
@@ -393,33 +425,54 @@ def pooled_fit_folder(out, test_name):
     return Path(out) / "tests" / test_name / "fit"
 
 
-def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=print) -> CampaignResult:
-    """Run (or resume) the campaign of the bundles in ``folder`` into ``out``; return what was done."""
+def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=print,
+                 executor=None) -> CampaignResult:
+    """Run (or resume) the campaign of the bundles in ``folder`` into ``out``; return what was done.
+
+    ``executor`` (:mod:`cpas_bayes.executor`; default ``config.workers`` local
+    processes) runs the tests side by side — or, with fewer tests than
+    workers, one test at a time with its ensembles side by side — and then
+    the Monte Carlo and load comparison steps. Results do not depend on it.
+    """
+    from .executor import make_executor
+
+    own = executor is None
+    executor = executor if executor is not None else make_executor(config.workers)
+    try:
+        return _run_campaign(folder, Path(out), config, echo, executor)
+    finally:
+        if own:
+            executor.close()
+
+
+def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     from .report import write_report
 
     started = _time.perf_counter()
-    out = Path(out)
     paths = find_bundles(folder)
     tests = validate_all(paths)
-    echo(f"{len(tests)} bundles valid in {folder}")
+    echo(f"{len(tests)} bundles valid in {folder}; running on {executor.describe()}")
     records: list[StepRecord] = []
     prior_key = priors_digest(config)
     options = asdict(config)
     fit_keys, diag_keys = {}, {}
+    jobs = []
     for path, test in zip(paths, tests):
-        base = out / "tests" / test.name
         bundle_key = _digest(folder_digest(path), __version__)
-        echo(f"{test.name}:")
-        run_step(base / "reduction", bundle_key, _reduce_work(test), records, f"{test.name} reduction", echo)
         fit_opts = {k: options[k] for k in ("seed", "decay", "fit_ensembles", "fit_max_steps", "fit_tau_factor",
                                             "fit_check_every")}
         fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
-        run_step(base / "fit", fit_keys[test.name],
-                 _fit_work(test, config, out / ".checkpoints" / test.name, echo), records, f"{test.name} fit", echo)
         if config.diagnose != "off":
             diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))
-            run_step(base / "diagnosis", diag_keys[test.name], _diagnose_work(test, config, base / "fit", echo),
-                     records, f"{test.name} diagnosis", echo)
+        jobs.append((test, config, out, bundle_key, fit_keys[test.name], diag_keys.get(test.name)))
+    if executor.workers > 1 and len(jobs) >= executor.workers:
+        results = executor.map(_test_task, jobs, desc="tests", on_report=echo)
+    else:  # fewer tests than workers: one test at a time, each fit's ensembles side by side
+        results = [_test_task(job, echo, executor) for job in jobs]
+    for recs, log in results:
+        records.extend(recs)
+        for message in log:
+            echo(message)
     causes = {}
     for test in tests:
         doc = out / "tests" / test.name / "diagnosis" / "diagnosis.json"
@@ -440,17 +493,20 @@ def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=pr
     configs = {}
     for path, test in zip(paths, tests):
         configs.setdefault(configuration_of(test), (path, test))
-    echo("Monte Carlo:")
+    echo("Monte Carlo and load comparisons:")
+    jobs = []
     for name, (path, like) in configs.items():
         key = _digest(pool_key, folder_digest(path), config.montecarlo_runs, config.seed)
-        run_step(out / "montecarlo" / name, key, _montecarlo_work(like, out / "memo", config), records,
-                 f"Monte Carlo {name} ({config.montecarlo_runs} runs)", echo)
-    echo("load comparisons:")
+        jobs.append(("montecarlo", out / "montecarlo" / name, key,
+                     f"Monte Carlo {name} ({config.montecarlo_runs} runs)", (like, out / "memo", config)))
     for test in tests:
         key = _digest(pool_key, fit_keys[test.name], config.compare_runs, config.seed)
-        run_step(out / "tests" / test.name / "compare", key,
-                 _compare_work(test, out / "memo", out / "tests" / test.name / "fit", config), records,
-                 f"{test.name} load comparison", echo)
+        jobs.append(("compare", out / "tests" / test.name / "compare", key, f"{test.name} load comparison",
+                     (test, out / "memo", out / "tests" / test.name / "fit", config)))
+    for recs, log in executor.map(_pooled_step_task, jobs, desc="steps", on_report=echo):
+        records.extend(recs)
+        for message in log:
+            echo(message)
     seconds = _time.perf_counter() - started
     manifest = {"campaign": config.name or Path(folder).name, "folder": str(folder), "version": __version__,
                 "config": options, "tests": [t.name for t in tests],

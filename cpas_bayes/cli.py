@@ -23,6 +23,35 @@ from .campaign import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
 
+# What Ctrl-C leaves behind, said by the command that is running (see main()).
+_INTERRUPTED = ["interrupted; nothing half-written was left (every output is written to a temporary file and "
+                "renamed)"]
+
+
+def _on_interrupt(message):
+    _INTERRUPTED[0] = f"interrupted; {message}"
+
+
+def parallel_options(default_workers=2, what="tasks", note=""):
+    """``--workers`` and ``--scheduler`` for a command that runs independent tasks."""
+    def decorate(fn):
+        fn = click.option("--scheduler", default=None, metavar="ADDRESS|local",
+                          help="Run the tasks on Dask: a scheduler address (tcp://HOST:PORT) or 'local' for a "
+                               "LocalCluster of --workers processes. Results are identical to the local pool.")(fn)
+        return click.option("--workers", type=click.IntRange(min=1), default=default_workers,
+                            show_default=default_workers is not None,
+                            help=f"Processes running {what} at once (one BLAS thread each){note}.")(fn)
+    return decorate
+
+
+def _executor(workers, scheduler):
+    from .executor import make_executor
+
+    executor = make_executor(workers, scheduler)
+    if executor.kind != "serial":
+        click.echo(f"running on {executor.describe()}")
+    return executor
+
 
 def _format_summary(s):
     lines = [f"{s['name']}  ({s['phase']}, {s['units']} units)",
@@ -153,22 +182,26 @@ def synth_command(scenario, effect, magnitude, seed, out):
               help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
 @click.option("--decay", type=click.Choice(["linear", "exponential"]), default="linear", show_default=True,
               help="Shape of the drag-area decay after the over-inflation peak.")
-@click.option("--workers", type=int, default=2, show_default=True, help="Processes running ensembles at once.")
+@parallel_options(what="ensembles")
 @click.option("--ensembles", type=int, default=4, show_default=True, help="Independent emcee ensembles (R-hat).")
-def fit_command(bundle, out, seed, priors, decay, workers, ensembles):
+def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles):
     """Posterior of every inflation parameter of one flight test (emcee).
 
     Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
     resumable checkpoints in OUT/checkpoint/ (rerun the same command to resume).
     """
     from .bundle import read_bundle
-    from .fit import SamplerOptions, fit_test
+    from .fit import SamplerOptions, fit_model, prepare_model
     from .plots.fit import write_fit_figures
 
     test = read_bundle(bundle)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}")
-    fit = fit_test(test, options, out=out, priors=priors, decay=decay, echo=click.echo)
+    model = prepare_model(test, priors=priors, decay=decay)
+    _on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
+                  "rerun the same command to resume from it")
+    with _executor(min(workers, ensembles), scheduler) as executor:
+        fit = fit_model(model, options, out=out, echo=click.echo, executor=executor)
     figures = write_fit_figures(fit, out)
     d = fit.summary["diagnostics"]
     click.echo(f"{'converged' if d['converged'] else 'NOT converged'}: R-hat max {d['rhat_max']:.4f}, "
@@ -195,7 +228,8 @@ def fit_command(bundle, out, seed, priors, decay, workers, ensembles):
               help="Also run both modes with independent parameters and write np_vs_n.json and "
                    "fill_time_np_vs_n.png (peak fill times outside the tested range).")
 @click.option("--batch", type=click.IntRange(min=1), default=None, help="Runs simulated at once (default 1000).")
-def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, compare_np, batch):
+@parallel_options(default_workers=1, what="batches of runs")
+def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, compare_np, batch, workers, scheduler):
     """Monte Carlo peak loads and fill times of a test's cluster with parameters from the model memo."""
     import numpy as np
 
@@ -206,7 +240,11 @@ def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, comp
     memo = load_memo(memo_path)
     test = read_bundle(like)
     rng = np.random.default_rng(seed)
-    result = run_monte_carlo(memo, test, runs, rng, mode=mode, joint=not independent, batch=batch)
+    with _executor(workers, scheduler) as executor:
+        result = run_monte_carlo(memo, test, runs, rng, mode=mode, joint=not independent, batch=batch,
+                                 executor=executor)
+        comparison = (compare_fill_time_dispersion(memo, test, runs, rng, batch=batch, executor=executor)
+                      if compare_np else None)
     extra = {"seed": seed, "memo_path": str(memo_path), "like_path": str(like)}
     paths = write_monte_carlo(result, out, memo=memo, extra=extra)
     force = test.units.label("force")
@@ -218,8 +256,7 @@ def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, comp
         if q:
             click.echo(f"  {stage['stage']}: peak load median {q['q50']:,.0f} {force}, "
                        f"99 % {q['q99']:,.0f} {force}")
-    if compare_np:
-        comparison = compare_fill_time_dispersion(memo, test, runs, rng, batch=batch)
+    if comparison is not None:
         paths.update({f"np_vs_n {k}": v for k, v in write_fill_time_comparison(comparison, out, extra).items()})
         for g in comparison.groups:
             click.echo(f"  {g.kind} {g.stage}: t_fp outside the tested range {100 * g.fraction_outside('n_p'):.1f} % "
@@ -310,8 +347,8 @@ def pool_command(fitdirs, out, seed):
               help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
 @click.option("--candidates", default=",".join(CANDIDATE_NAMES), show_default=True,
               help="Comma-separated extensions to try against the baseline.")
-@click.option("--workers", type=int, default=2, show_default=True, help="Processes running ensembles at once.")
-def diagnose_command(bundle, out, seed, priors, candidates, workers):
+@parallel_options(what="candidate fits (or one fit's ensembles)")
+def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
     """Find what the baseline simulation gets wrong in one test and name the cause.
 
     Fits the baseline and the baseline plus each candidate term, compares them
@@ -331,7 +368,9 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers):
     test = read_bundle(bundle)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
                               sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
-    diagnosis = diagnose_test(test, options, echo=click.echo)
+    _on_interrupt(f"nothing was written to {out} (a diagnosis writes its files at the end); rerun the command")
+    with _executor(workers, scheduler) as executor:
+        diagnosis = diagnose_test(test, options, echo=click.echo, executor=executor)
     path = write_diagnosis(diagnosis, out)
     table = diagnosis.versus_baseline.sort_values("elpd_diff", ascending=False)
     for r in table.to_dict("records"):
@@ -349,10 +388,10 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers):
               help="Folder for every step's outputs and the report (index.html, report.md).")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None,
               help="Campaign TOML with the options (see below).")
-@click.option("--workers", type=int, default=None, help="Processes running ensembles at once (overrides --config).")
+@parallel_options(default_workers=None, what="tests", note="; overrides --config, default 2")
 @click.option("--diagnose", "diagnose_mode", type=click.Choice(["screen", "full", "off"]), default=None,
               help="Diagnosis of each test (overrides --config; default screen).")
-def campaign_command(folder, out, config_path, workers, diagnose_mode):
+def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode):
     """From a folder of flight-test bundles to a model memo, Monte Carlo, load comparisons and a report.
 
     Validates every bundle in FOLDER, reduces, fits, diagnoses and pools them,
@@ -369,7 +408,10 @@ def campaign_command(folder, out, config_path, workers, diagnose_mode):
         config = replace(config, workers=workers)
     if diagnose_mode is not None:
         config = replace(config, diagnose=diagnose_mode)
-    result = run_campaign(folder, out, config, echo=click.echo)
+    _on_interrupt(f"finished steps are kept in {out} and running fits' checkpoints in {out / '.checkpoints'}; "
+                  "rerun the same command to resume")
+    with _executor(config.workers, scheduler) as executor:
+        result = run_campaign(folder, out, config, echo=click.echo, executor=executor)
     ran = sum(s.status == "ran" for s in result.steps)
     click.echo(f"{len(result.tests)} tests, {ran} steps run, {len(result.steps) - ran} kept, "
                f"{result.seconds:.0f} s; causes: "
@@ -387,7 +429,7 @@ def main(argv=None):
         click.secho(f"error: {exc}", fg="red", err=True)
         return 2
     except click.exceptions.Abort:
-        click.echo("interrupted; partial work is checkpointed where the command supports it", err=True)
+        click.echo(_INTERRUPTED[0], err=True)
         return 130
     except click.ClickException as exc:
         exc.show()
@@ -395,7 +437,7 @@ def main(argv=None):
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else 1
     except KeyboardInterrupt:
-        click.echo("interrupted; partial work is checkpointed where the command supports it", err=True)
+        click.echo(_INTERRUPTED[0], err=True)
         return 130
     except Exception as exc:  # noqa: BLE001 - the last line of defence for a CLI user
         if os.environ.get("CPAS_BAYES_DEBUG") == "1":

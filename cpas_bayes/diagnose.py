@@ -212,22 +212,24 @@ def _extended_model(name, test, reduction, options, baseline):
     return model, extension
 
 
-def fit_candidate(name, test, reduction, options: DiagnoseOptions, baseline=None, echo=None, index=0, guesses=None):
+def fit_candidate(name, test, reduction, options: DiagnoseOptions, baseline=None, echo=None, index=0, guesses=None,
+                  executor=None):
     """Fit the baseline (``name == "baseline"``) or the baseline plus one extension.
 
-    ``guesses`` replace the extension's MAP starts (e.g. the screen's MAP).
+    ``guesses`` replace the extension's MAP starts (e.g. the screen's MAP);
+    ``executor`` runs the fit's ensembles.
     """
     started = _time.perf_counter()
     sampler = replace(options.sampler, seed=int(np.random.default_rng([options.seed, index]).integers(2**31 - 1)))
     if name == BASELINE:
         model = prepare_model(test, reduction, options.priors, options.decay)
-        fit = fit_model(model, sampler, echo=echo)
+        fit = fit_model(model, sampler, echo=echo, executor=executor)
     else:
         model, extension = _extended_model(name, test, reduction, options, baseline)
         if guesses is None:
             guesses = extension_starts(model, baseline.fit.model, baseline.fit.sampling.theta_map, extension)
         fit = fit_model(model, replace(sampler, map_starts=max(len(guesses), sampler.map_starts)),
-                        echo=echo, guesses=guesses)
+                        echo=echo, guesses=guesses, executor=executor)
     return CandidateFit(name=name, fit=fit, loo=psis_loo(fit.tree), seconds=_time.perf_counter() - started)
 
 
@@ -270,6 +272,16 @@ def screen_candidate(name, test, reduction, options: DiagnoseOptions, baseline: 
         passed = passed and abs(size) >= floor
     return ScreenResult(name=name, map_gain=gain, size=size, passed=bool(passed), theta_map=theta,
                         seconds=_time.perf_counter() - started)
+
+
+def _screen_task(job):
+    name, test, reduction, options, baseline, index = job
+    return screen_candidate(name, test, reduction, options, baseline, index=index)
+
+
+def _candidate_task(job):
+    name, test, reduction, options, baseline, index, guesses = job
+    return fit_candidate(name, test, reduction, options, baseline=baseline, index=index, guesses=guesses)
 
 
 # ---------------------------------------------------------------------------
@@ -515,7 +527,7 @@ def baseline_from_fit(fit: Fit) -> CandidateFit:
 
 
 def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=None, echo=None,
-                  baseline_fit: Fit | None = None) -> Diagnosis:
+                  baseline_fit: Fit | None = None, executor=None) -> Diagnosis:
     """Fit the baseline and the candidates, compare them, name the cause and measure its gain.
 
     Mode ``full`` samples every candidate. Mode ``screen`` first finds each
@@ -523,7 +535,24 @@ def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=
     pass :func:`screen_candidate` (plus ``correlated_noise`` to compare with);
     when none passes, the cause is ``none`` without further sampling.
     ``baseline_fit`` reuses a baseline fit instead of sampling one.
+
+    ``executor`` (:mod:`cpas_bayes.executor`; default ``options.sampler.workers``
+    local processes) runs the screens and the candidate fits side by side, or
+    a lone fit's ensembles; every fit has its own seed, so the diagnosis is
+    the same on any executor.
     """
+    from .executor import make_executor
+
+    own = executor is None
+    executor = executor if executor is not None else make_executor(options.sampler.workers)
+    try:
+        return _diagnose(test, options, reduction, echo, baseline_fit, executor)
+    finally:
+        if own:
+            executor.close()
+
+
+def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     from . import checks as chk
     from .reduction import reduce_test
 
@@ -531,28 +560,35 @@ def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=
     reduction = reduction if reduction is not None else reduce_test(test)
     if baseline_fit is None:
         say(f"{test.name}: baseline fit")
-        baseline = fit_candidate(BASELINE, test, reduction, options, echo=echo)
+        baseline = fit_candidate(BASELINE, test, reduction, options, echo=echo, executor=executor)
     else:
         baseline = baseline_from_fit(baseline_fit)
     screen = {}
     to_fit = list(options.candidates)
     if options.mode == "screen":
         baseline = polish_baseline_map(baseline, options)
-        for i, name in enumerate(n for n in options.candidates if n in PHYSICAL):
-            screen[name] = screen_candidate(name, test, reduction, options, baseline, index=i + 1)
-            r = screen[name]
+        names = [n for n in options.candidates if n in PHYSICAL]
+        results = executor.map(_screen_task, [(n, test, reduction, options, baseline, i + 1)
+                                              for i, n in enumerate(names)], desc="screen", progress=False)
+        for name, r in zip(names, results):
+            screen[name] = r
             say(f"{test.name}: screen {name}: MAP gain {r.map_gain:+.1f}"
                 + (f", size {r.size:.3g}" if r.size is not None else "") + (" → sample" if r.passed else ""))
         passed = [n for n, r in screen.items() if r.passed]
         to_fit = passed + ([n for n in options.candidates if n not in PHYSICAL] if passed else [])
     elif options.mode != "full":
         raise ValueError(f"unknown diagnosis mode {options.mode!r}; use 'full' or 'screen'")
-    candidates = {}
-    for i, name in enumerate(to_fit):
-        say(f"{test.name}: fit with {name} ({i + 1}/{len(to_fit)})")
-        guesses = [screen[name].theta_map] if name in screen else None
-        candidates[name] = fit_candidate(name, test, reduction, options, baseline=baseline, echo=echo,
-                                         index=options.candidates.index(name) + 1, guesses=guesses)
+    jobs = [(name, test, reduction, options, baseline, options.candidates.index(name) + 1,
+             [screen[name].theta_map] if name in screen else None) for name in to_fit]
+    if executor.workers > 1 and len(jobs) > 1:
+        say(f"{test.name}: fit with {', '.join(to_fit)} on {executor.describe()}")
+        fitted = executor.map(_candidate_task, jobs, desc="candidates", progress=False)
+    else:  # one fit at a time, its ensembles side by side
+        fitted = []
+        for i, job in enumerate(jobs):
+            say(f"{test.name}: fit with {job[0]} ({i + 1}/{len(jobs)})")
+            fitted.append(fit_candidate(*job[:5], echo=echo, index=job[5], guesses=job[6], executor=executor))
+    candidates = dict(zip(to_fit, fitted))
     rng = np.random.default_rng([options.seed, 7])
     checks = chk.run_checks(baseline.fit, rng=rng)
     table = versus_baseline(baseline, candidates)

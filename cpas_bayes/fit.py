@@ -31,7 +31,6 @@ from __future__ import annotations
 import hashlib
 import json
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -404,17 +403,18 @@ def run_ensemble(model, init, seed, options: SamplerOptions, checkpoint=None, la
                        thin=thin * options.store_every)
 
 
-def _ensemble_task(args):
-    model, init, seed, options, checkpoint, label, queue = args
-    report = (lambda *a: queue.put(a)) if queue is not None else None
+def _ensemble_task(job, report=None):
+    model, init, seed, options, checkpoint, label = job
     return run_ensemble(model, init, seed, options, checkpoint, label, report)
 
 
 def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(), checkpoint_dir=None,
-                     echo=None, guesses=None) -> SamplingResult:
+                     echo=None, guesses=None, executor=None) -> SamplingResult:
     """MAP, Laplace ball and ``options.n_ensembles`` ensembles; returns all draws.
 
     ``guesses``: starting points for the MAP search (see :func:`find_map`).
+    ``executor`` (:mod:`cpas_bayes.executor`) runs the ensembles; default a
+    local pool of ``options.workers`` processes. The draws do not depend on it.
     """
     rng = np.random.default_rng(options.seed)
     theta_map, lp_map = find_map(model, rng, options.map_starts, guesses)
@@ -425,43 +425,27 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
              for e in range(options.n_ensembles)]
     seeds = [int(np.random.default_rng([options.seed, e, 1]).integers(2**31 - 1)) for e in range(options.n_ensembles)]
     ckpts = [Path(checkpoint_dir) / f"ensemble_{e}.h5" if checkpoint_dir else None for e in range(options.n_ensembles)]
-    runs = _run_all(model, inits, seeds, ckpts, options, echo)
+    runs = _run_all(model, inits, seeds, ckpts, options, executor)
     return SamplingResult(names=list(model.names), runs=runs, theta_map=theta_map, log_post_map=float(lp_map),
                           options=options)
 
 
-def _run_all(model, inits, seeds, ckpts, options, echo):
-    labels = [f"ensemble {e + 1}/{len(inits)}" for e in range(len(inits))]
-    show = options.progress and sys.stderr.isatty()
-    if options.workers <= 1 or len(inits) == 1:
-        bar = _ProgressBars(labels, options) if show else None
-        runs = [run_ensemble(model, i, s, options, c, lab, bar.update if bar else None)
-                for i, s, c, lab in zip(inits, seeds, ckpts, labels)]
-        if bar:
-            bar.close()
-        return runs
-    import multiprocessing as mp
+def _run_all(model, inits, seeds, ckpts, options, executor=None):
+    from .executor import make_executor
 
-    ctx = mp.get_context("fork")
-    manager = ctx.Manager() if show else None
-    queue = manager.Queue() if manager else None
-    with ProcessPoolExecutor(max_workers=options.workers, mp_context=ctx) as pool:
-        futures = [pool.submit(_ensemble_task, (model, i, s, options, c, lab, queue))
-                   for i, s, c, lab in zip(inits, seeds, ckpts, labels)]
-        if show:
-            bar = _ProgressBars(labels, options)
-            while not all(f.done() for f in futures):
-                try:
-                    bar.update(*queue.get(timeout=0.2))
-                except Exception:  # noqa: BLE001 - queue timeout: poll the futures again
-                    pass
-            while not queue.empty():
-                bar.update(*queue.get())
-            bar.close()
-        runs = [f.result() for f in futures]
-    if manager:
-        manager.shutdown()
-    return runs
+    labels = [f"ensemble {e + 1}/{len(inits)}" for e in range(len(inits))]
+    jobs = [(model, i, s, options, c, lab) for i, s, c, lab in zip(inits, seeds, ckpts, labels)]
+    bars = _ProgressBars(labels, options) if options.progress and sys.stderr.isatty() else None
+    own = executor is None
+    executor = executor if executor is not None else make_executor(min(options.workers, len(jobs)))
+    try:
+        return executor.map(_ensemble_task, jobs, desc="ensembles", progress=False,
+                            on_report=bars.update if bars else None)
+    finally:
+        if bars:
+            bars.close()
+        if own:
+            executor.close()
 
 
 class _ProgressBars:
@@ -510,17 +494,19 @@ def prepare_model(test, reduction=None, priors=None, decay="linear", extensions=
 
 
 def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=None, echo=None,
-              guesses=None, checkpoint_dir=None) -> Fit:
+              guesses=None, checkpoint_dir=None, executor=None) -> Fit:
     """Sample ``model``'s posterior; write ``posterior.nc`` and ``summary.json`` into ``out`` if given.
 
     Checkpoints go to ``checkpoint_dir`` (default ``out/checkpoint``); none without either.
+    ``executor`` runs the ensembles (see :func:`sample_posterior`).
     """
     from .posterior import POSTERIOR_NAME, build_datatree, build_summary, convergence, save_datatree, write_summary
 
     out = Path(out) if out else None
     if checkpoint_dir is None and out is not None:
         checkpoint_dir = out / "checkpoint"
-    sampling = sample_posterior(model, options, checkpoint_dir=checkpoint_dir, echo=echo, guesses=guesses)
+    sampling = sample_posterior(model, options, checkpoint_dir=checkpoint_dir, echo=echo, guesses=guesses,
+                                executor=executor)
     tree = build_datatree(model, sampling, np.random.default_rng([options.seed, 99]))
     diagnostics = convergence(tree, sampling)
     summary = build_summary(model, tree, diagnostics, options)

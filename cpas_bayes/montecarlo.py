@@ -818,29 +818,36 @@ def _show_progress(progress):
     return sys.stderr.isatty() if progress is None else bool(progress)
 
 
+def _batch_task(job):
+    engine, layout, chunk, options, n_history = job
+    if engine == "compiled":
+        ensure_compiled()
+        return _run_compiled(layout, chunk, options, n_history)
+    return _run_trajectory(layout, chunk, options, n_history)
+
+
 def simulate_runs(layout: ClusterLayout, inputs: RunInputs, options: SimulationOptions = SimulationOptions(),
-                  engine="auto", batch=None, history_runs=0, progress=None, desc="runs") -> RunOutputs:
+                  engine="auto", batch=None, history_runs=0, progress=None, desc="runs", executor=None) -> RunOutputs:
     """Fly every run of ``inputs`` in batches of ``batch`` runs; per-run peaks, timing and H load histories.
 
     ``history_runs`` H keeps Σ F_i(t) of the first H runs at the sample times
     (for load bands). A tqdm bar counts batches when ``progress`` is true
-    (default: when stderr is a terminal). Batching changes nothing in the
-    results.
+    (default: when stderr is a terminal). ``executor``
+    (:mod:`cpas_bayes.executor`) flies the batches side by side. Neither the
+    batch size nor the executor changes the results: every run's inputs are
+    drawn beforehand and each run is flown on its own.
     """
+    from .executor import Executor
+
     engine = choose_engine(engine, options)
     runs = len(inputs)
     batch = int(batch or (DEFAULT_BATCH if engine == "compiled" else TRAJECTORY_BATCH))
     if batch < 1:
         raise ValueError("batch must be at least 1")
-    run_batch = _run_compiled if engine == "compiled" else _run_trajectory
-    starts = range(0, runs, batch)
-    parts = []
-    with tqdm(total=len(starts), desc=desc, unit="batch", disable=not _show_progress(progress), leave=False) as bar:
-        for first in starts:
-            chunk = inputs.take(slice(first, min(first + batch, runs)))
-            parts.append(run_batch(layout, chunk, options, max(0, min(history_runs - first, len(chunk)))))
-            bar.update(1)
-    return RunOutputs.concatenate(parts)
+    jobs = [(engine, layout, inputs.take(slice(first, min(first + batch, runs))), options,
+             max(0, min(history_runs - first, min(batch, runs - first)))) for first in range(0, runs, batch)]
+    executor = executor if executor is not None else Executor()
+    return RunOutputs.concatenate(executor.map(_batch_task, jobs, desc=desc, progress=_show_progress(progress)))
 
 
 # ---------------------------------------------------------------------------
@@ -966,14 +973,14 @@ class MonteCarloResult:
 
 def run_monte_carlo(memo: Memo, like: FlightTest, runs: int, rng: np.random.Generator, mode="n_p", joint=True,
                     batch=None, progress=None, options: SimulationOptions = SimulationOptions(), engine="auto",
-                    history_runs=0) -> MonteCarloResult:
+                    history_runs=0, executor=None) -> MonteCarloResult:
     """Monte Carlo of ``like``'s cluster with parameter sets drawn from ``memo``.
 
     ``mode`` "n_p": disperse n_p, derive n per run (Eq. 18); "n": disperse n
     (Eq. 14) independently. ``joint``: resample the memo's population draws
     (True) or draw each parameter from its own distribution (False). Runs are
-    simulated ``batch`` at a time (see :func:`simulate_runs`). The runtime
-    covers drawing and simulating.
+    simulated ``batch`` at a time, on ``executor`` if given (see
+    :func:`simulate_runs`). The runtime covers drawing and simulating.
     """
     layout = ClusterLayout.from_test(like)
     engine_used = choose_engine(engine, options)
@@ -982,7 +989,7 @@ def run_monte_carlo(memo: Memo, like: FlightTest, runs: int, rng: np.random.Gene
     clock, cpu = _time.perf_counter(), _time.process_time()
     inputs = draw_run_inputs(memo, layout, runs, rng, mode=mode, joint=joint)
     outputs = simulate_runs(layout, inputs, options, engine_used, batch, history_runs, progress,
-                            desc=f"Monte Carlo ({mode})")
+                            desc=f"Monte Carlo ({mode})", executor=executor)
     runtime, cpu = _time.perf_counter() - clock, _time.process_time() - cpu
     source = {"memo": str(memo.folder / MEMO_NAME) if memo.folder else None,
               "memo_provenance": dict(memo.provenance)}
@@ -1096,7 +1103,7 @@ class FillTimeComparison:
 
 def compare_fill_time_dispersion(memo: Memo, like: FlightTest, runs: int, rng: np.random.Generator, batch=None,
                                  progress=None, options: SimulationOptions = SimulationOptions(),
-                                 engine="auto") -> FillTimeComparison:
+                                 engine="auto", executor=None) -> FillTimeComparison:
     """Run the same Monte Carlo with n_p and with n dispersed; t_fp outside the tested range per kind and stage.
 
     Both modes draw every parameter independently from its memo family
@@ -1122,7 +1129,8 @@ def compare_fill_time_dispersion(memo: Memo, like: FlightTest, runs: int, rng: n
     seed = int(rng.integers(2**63))
     clock = _time.perf_counter()
     results = {mode: run_monte_carlo(memo, like, runs, np.random.default_rng(seed), mode=mode, joint=False,
-                                     batch=batch, progress=progress, options=options, engine=engine)
+                                     batch=batch, progress=progress, options=options, engine=engine,
+                                     executor=executor)
                for mode in MODES}
     runtime = _time.perf_counter() - clock
     groups = []

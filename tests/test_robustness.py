@@ -1,0 +1,240 @@
+"""Scale and robustness: every executor gives the same bytes; SIGKILL and Ctrl-C leave a resumable state.
+
+Executors run seeded tasks, so "the same" here means equal arrays and equal
+files, not statistically close ones. The kill tests start a real process,
+kill it with SIGKILL (or interrupt it with SIGINT) once its first checkpoint
+exists, check that the kill did land mid-run, and resume.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from cpas_bayes.bundle import example_bundles, read_bundle
+from cpas_bayes.cli import main
+from cpas_bayes.executor import DaskExecutor, Executor, ProcessExecutor, in_worker, make_executor
+from cpas_bayes.fit import SamplerOptions, fit_model, prepare_model
+from cpas_bayes.montecarlo import run_monte_carlo
+from cpas_bayes.synth import write_synthetic
+
+from test_montecarlo import MAIN_SPEC, hand_memo
+
+
+def _square_after(job, report=None):
+    """A task whose finishing order is the reverse of its submission order."""
+    value, delay = job
+    time.sleep(delay)
+    if report is not None:
+        report("done", value)
+    return value * value, in_worker()
+
+
+def _fails(job):
+    raise ValueError(f"task {job} failed")
+
+
+def _nested(job):
+    ex = make_executor(workers=4)
+    return ex.kind
+
+
+# ---------------------------------------------------------------------------
+# the executors
+
+
+def test_process_pool_keeps_submission_order_relays_reports_and_errors():
+    jobs = [(v, 0.3 - 0.1 * v) for v in range(3)]
+    seen = []
+    with ProcessExecutor(2) as ex:
+        out = ex.map(_square_after, jobs, on_report=lambda *m: seen.append(m))
+        assert [o[0] for o in out] == [0, 1, 4]
+        assert all(o[1] for o in out)                           # ran in a worker
+        assert sorted(seen) == [("done", 0), ("done", 1), ("done", 2)]
+        assert ex.map(_nested, [0, 1]) == ["serial", "serial"]  # pools do not nest
+        with pytest.raises(ValueError, match="task 1 failed"):
+            ex.map(_fails, [1, 2])
+        assert ex.map(_square_after, [(5, 0)]) == [(25, True)]  # usable after a failure
+    assert Executor().map(_square_after, jobs) == [(0, False), (1, False), (4, False)]
+    assert make_executor(1).kind == "serial" and make_executor(3).kind == "processes"
+
+
+def test_monte_carlo_is_identical_on_every_executor():
+    test = read_bundle(next(p for p in example_bundles() if p.name.startswith("main")))
+    memo = hand_memo(MAIN_SPEC)
+
+    def run(executor):
+        result = run_monte_carlo(memo, test, 600, np.random.default_rng(4), batch=128, executor=executor,
+                                 progress=False)
+        return result.frame()
+
+    reference = run(None)
+    with ProcessExecutor(2) as ex:
+        pooled = run(ex)
+    with DaskExecutor(workers=2) as ex:
+        assert ex.workers == 2
+        dask = run(ex)
+    assert reference.equals(pooled) and reference.equals(dask)
+
+
+# ---------------------------------------------------------------------------
+# a fit killed with SIGKILL, interrupted with Ctrl-C
+
+FIT_OPTIONS = dict(seed=3, n_ensembles=2, workers=1, check_every=100, max_steps=800, tau_factor=1e9,
+                   map_starts=1, progress=False)
+
+FIT_SCRIPT = """
+import sys
+from cpas_bayes.bundle import read_bundle
+from cpas_bayes.fit import SamplerOptions, fit_model, prepare_model
+model = prepare_model(read_bundle(sys.argv[1]))
+fit_model(model, SamplerOptions(**{options}), checkpoint_dir=sys.argv[2])
+"""
+
+
+def _wait_for(path, process, timeout=300):
+    started = time.time()
+    while not path.exists():
+        assert process.poll() is None, process.communicate()
+        assert time.time() - started < timeout, f"{path} never appeared"
+        time.sleep(0.05)
+
+
+def _iterations(checkpoint):
+    import h5py
+
+    with h5py.File(checkpoint, "r") as f:
+        return int(f["mcmc"].attrs["iteration"])
+
+
+@pytest.mark.slow
+def test_a_fit_killed_with_sigkill_resumes_to_the_same_posterior(tmp_path):
+    bundle = next(p for p in example_bundles() if p.name.startswith("drogue"))
+    checkpoints = tmp_path / "checkpoint"
+    script = FIT_SCRIPT.format(options=FIT_OPTIONS)
+    process = subprocess.Popen([sys.executable, "-c", script, str(bundle), str(checkpoints)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    first = checkpoints / "ensemble_0.h5"
+    _wait_for(first, process)
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=30)
+    assert process.returncode == -signal.SIGKILL
+    stored_every = SamplerOptions().store_every
+    done_at_kill = _iterations(first) * stored_every
+    assert 0 < done_at_kill < FIT_OPTIONS["max_steps"], "the kill did not land mid-run"
+    assert not (checkpoints / "ensemble_1.h5").exists()
+    assert not [p for p in checkpoints.iterdir() if p.name.startswith(".")], "a half-written file was left"
+
+    model = prepare_model(read_bundle(bundle))
+    options = SamplerOptions(**FIT_OPTIONS)
+    resumed = fit_model(model, options, checkpoint_dir=checkpoints)
+    uninterrupted = fit_model(model, options)
+    for a, b in zip(resumed.sampling.runs, uninterrupted.sampling.runs):
+        assert a.steps == b.steps == FIT_OPTIONS["max_steps"]
+        np.testing.assert_array_equal(a.draws, b.draws)
+        np.testing.assert_array_equal(a.log_prob, b.log_prob)
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_fit_with_a_resumable_checkpoint_and_says_how_to_resume(tmp_path):
+    bundle = next(p for p in example_bundles() if p.name.startswith("drogue"))
+    out = tmp_path / "fit"
+    env = dict(os.environ, MPLBACKEND="Agg")
+    process = subprocess.Popen([sys.executable, "-m", "cpas_bayes.cli", "fit", str(bundle), "--out", str(out),
+                                "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env=env)
+    _wait_for(out / "checkpoint" / "ensemble_0.h5", process)
+    process.send_signal(signal.SIGINT)
+    stdout, stderr = process.communicate(timeout=60)
+    assert process.returncode == 130, stderr
+    assert "interrupted" in stderr and "rerun the same command to resume" in stderr
+    assert "Traceback" not in stderr
+    assert _iterations(out / "checkpoint" / "ensemble_0.h5") > 0
+    assert not (out / "posterior.nc").exists() and not (out / "summary.json").exists()
+
+
+# ---------------------------------------------------------------------------
+# campaigns: process pool, Dask LocalCluster, killed and resumed
+
+CAMPAIGN = """
+name = "executor campaign"
+[fit]
+ensembles = 2
+max_steps = 600
+tau_factor = 10
+check_every = 200
+[diagnose]
+mode = "off"
+[montecarlo]
+runs = 300
+[compare]
+runs = 100
+[pool]
+draws = 1000
+"""
+
+RESULT_FILES = ("memo/memo.toml", "memo/memo_draws.csv", "montecarlo/2xdrogue-2st/runs.csv")
+
+
+def _campaign_inputs(tmp_path):
+    folder = tmp_path / "bundles"
+    write_synthetic("drogue", "none", 41, folder / "T1")
+    write_synthetic("drogue", "none", 42, folder / "T2")
+    config = tmp_path / "campaign.toml"
+    config.write_text(CAMPAIGN)
+    return folder, config
+
+
+def _results(out):
+    return {f: (out / f).read_bytes() for f in RESULT_FILES}
+
+
+@pytest.mark.slow
+def test_campaign_memos_are_identical_under_the_process_pool_and_a_dask_local_cluster(tmp_path):
+    folder, config = _campaign_inputs(tmp_path)
+    args = ["campaign", str(folder), "--config", str(config), "--workers", "2"]
+    assert main(args + ["--out", str(tmp_path / "pool")]) == 0
+    assert main(args + ["--out", str(tmp_path / "dask"), "--scheduler", "local"]) == 0
+    pool, dask = _results(tmp_path / "pool"), _results(tmp_path / "dask")
+    for name in RESULT_FILES:
+        assert pool[name] == dask[name], f"{name} differs between executors"
+    manifest = json.loads((tmp_path / "dask" / "campaign.json").read_text())
+    assert manifest["tests"] and all(s["status"] == "ran" for s in manifest["steps"])
+
+
+@pytest.mark.slow
+def test_a_campaign_killed_mid_fit_resumes_to_the_same_memo(tmp_path):
+    folder, config = _campaign_inputs(tmp_path)
+    killed = tmp_path / "killed"
+    args = ["campaign", str(folder), "--config", str(config), "--workers", "1"]
+    process = subprocess.Popen([sys.executable, "-m", "cpas_bayes.cli", *args, "--out", str(killed)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=dict(os.environ, MPLBACKEND="Agg"))
+    second_ckpt = None
+    started = time.time()
+    # Kill once the second test's fit has written its first chunk: one fit done, one mid-way.
+    while second_ckpt is None:
+        assert process.poll() is None, process.communicate()
+        assert time.time() - started < 600
+        ckpts = sorted((killed / ".checkpoints").glob("*/ensemble_0.h5")) if (killed / ".checkpoints").exists() \
+            else []
+        if len(ckpts) == 2:
+            second_ckpt = ckpts
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=30)
+    finished_fits = [p for p in (killed / "tests").glob("*/fit/stamp.json")]
+    assert len(finished_fits) == 1, "the kill should land while the second fit runs"
+    assert not (killed / "memo").exists()
+
+    assert main([*args, "--out", str(killed)]) == 0
+    steps = {s["name"]: s["status"] for s in json.loads((killed / "campaign.json").read_text())["steps"]}
+    assert sorted(steps[k] for k in steps if k.endswith(" fit")) == ["cached", "ran"]
+    assert main([*args, "--out", str(tmp_path / "whole")]) == 0
+    resumed, whole = _results(killed), _results(tmp_path / "whole")
+    for name in RESULT_FILES:
+        assert resumed[name] == whole[name], f"{name} differs after the resume"
