@@ -132,8 +132,12 @@ class ProcessExecutor(Executor):
             raise ValueError(f"workers must be at least 1, got {workers}")
         self.workers = int(workers)
         if "forkserver" in mp.get_all_start_methods():
+            from multiprocessing import forkserver
+
             self._ctx = mp.get_context("forkserver")
             self._ctx.set_forkserver_preload(self._PRELOAD)
+            # Start the server now: its imports (~2 s) overlap the caller's work until the first map.
+            forkserver.ensure_running()
         else:
             self._ctx = mp.get_context("spawn")
         self._pool = None

@@ -416,36 +416,41 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
     ``executor`` (:mod:`cpas_bayes.executor`) runs the ensembles; default a
     local pool of ``options.workers`` processes. The draws do not depend on it.
     """
-    rng = np.random.default_rng(options.seed)
-    theta_map, lp_map = find_map(model, rng, options.map_starts, guesses)
-    cov = laplace_covariance(model, theta_map)
-    n_walkers = options.walkers or 2 * model.ndim + 2
-    n_walkers += n_walkers % 2
-    inits = [initial_walkers(model, theta_map, cov, n_walkers, np.random.default_rng([options.seed, e]))
-             for e in range(options.n_ensembles)]
-    seeds = [int(np.random.default_rng([options.seed, e, 1]).integers(2**31 - 1)) for e in range(options.n_ensembles)]
-    ckpts = [Path(checkpoint_dir) / f"ensemble_{e}.h5" if checkpoint_dir else None for e in range(options.n_ensembles)]
-    runs = _run_all(model, inits, seeds, ckpts, options, executor)
+    from .executor import make_executor
+
+    own = executor is None
+    if own:  # made before the MAP search, so that the workers start while it runs
+        executor = make_executor(min(options.workers, options.n_ensembles))
+    try:
+        rng = np.random.default_rng(options.seed)
+        theta_map, lp_map = find_map(model, rng, options.map_starts, guesses)
+        cov = laplace_covariance(model, theta_map)
+        n_walkers = options.walkers or 2 * model.ndim + 2
+        n_walkers += n_walkers % 2
+        inits = [initial_walkers(model, theta_map, cov, n_walkers, np.random.default_rng([options.seed, e]))
+                 for e in range(options.n_ensembles)]
+        seeds = [int(np.random.default_rng([options.seed, e, 1]).integers(2**31 - 1))
+                 for e in range(options.n_ensembles)]
+        ckpts = [Path(checkpoint_dir) / f"ensemble_{e}.h5" if checkpoint_dir else None
+                 for e in range(options.n_ensembles)]
+        runs = _run_all(model, inits, seeds, ckpts, options, executor)
+    finally:
+        if own:
+            executor.close()
     return SamplingResult(names=list(model.names), runs=runs, theta_map=theta_map, log_post_map=float(lp_map),
                           options=options)
 
 
-def _run_all(model, inits, seeds, ckpts, options, executor=None):
-    from .executor import make_executor
-
+def _run_all(model, inits, seeds, ckpts, options, executor):
     labels = [f"ensemble {e + 1}/{len(inits)}" for e in range(len(inits))]
     jobs = [(model, i, s, options, c, lab) for i, s, c, lab in zip(inits, seeds, ckpts, labels)]
     bars = _ProgressBars(labels, options) if options.progress and sys.stderr.isatty() else None
-    own = executor is None
-    executor = executor if executor is not None else make_executor(min(options.workers, len(jobs)))
     try:
         return executor.map(_ensemble_task, jobs, desc="ensembles", progress=False,
                             on_report=bars.update if bars else None)
     finally:
         if bars:
             bars.close()
-        if own:
-            executor.close()
 
 
 class _ProgressBars:
