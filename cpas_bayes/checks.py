@@ -538,9 +538,10 @@ def loo_pit(fit, tree=None) -> LooPitResult:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
         pit = az.loo_pit(tree, var_names=[c for c in ("acc", "lc") if c in tree["observed_data"]])
-    values = {ACC_CHANNEL: np.asarray(pit["acc"].values, float)}
+    # The PSIS-weighted sums can overshoot [0, 1] by round-off; a PIT is a probability.
+    values = {ACC_CHANNEL: np.clip(np.asarray(pit["acc"].values, float), 0.0, 1.0)}
     if "lc" in pit:
-        lc = np.asarray(pit["lc"].values, float)
+        lc = np.clip(np.asarray(pit["lc"].values, float), 0.0, 1.0)
         for row, cid in enumerate(pit["lc"]["load_cell"].values):
             values[f"load cell {cid}"] = lc[row]
     rows = []
