@@ -402,6 +402,14 @@ def _pooled_step_task(job, report=None):
     return records, log
 
 
+def _collect(results, records, echo):
+    """Add the tasks' step records in task order; show the messages they could not send as they ran."""
+    for recs, log in results:
+        records.extend(recs)
+        for message in log:
+            echo(message)
+
+
 # ---------------------------------------------------------------------------
 # the campaign
 
@@ -469,10 +477,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
         results = executor.map(_test_task, jobs, desc="tests", on_report=echo)
     else:  # fewer tests than workers: one test at a time, each fit's ensembles side by side
         results = [_test_task(job, echo, executor) for job in jobs]
-    for recs, log in results:
-        records.extend(recs)
-        for message in log:
-            echo(message)
+    _collect(results, records, echo)
     causes = {}
     for test in tests:
         doc = out / "tests" / test.name / "diagnosis" / "diagnosis.json"
@@ -503,10 +508,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
         key = _digest(pool_key, fit_keys[test.name], config.compare_runs, config.seed)
         jobs.append(("compare", out / "tests" / test.name / "compare", key, f"{test.name} load comparison",
                      (test, out / "memo", out / "tests" / test.name / "fit", config)))
-    for recs, log in executor.map(_pooled_step_task, jobs, desc="steps", on_report=echo):
-        records.extend(recs)
-        for message in log:
-            echo(message)
+    _collect(executor.map(_pooled_step_task, jobs, desc="steps", on_report=echo), records, echo)
     seconds = _time.perf_counter() - started
     manifest = {"campaign": config.name or Path(folder).name, "folder": str(folder), "version": __version__,
                 "config": options, "tests": [t.name for t in tests],

@@ -220,7 +220,7 @@ def _stage_value(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, linear):
 
 
 @numba.njit(cache=True)
-def _parachute_stages(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
+def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
                       n_stages, linear, fill_is_np, t_sorted, out, t_f_out, t_fp_out, n_out, held_out):
     """One parachute's stages (arrays (K,)): drag area at ``t`` (N,) into ``out`` (N,), timing into (K,).
 
@@ -276,7 +276,7 @@ def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     for b in range(B):
         tb = b if per_walker_time else 0
         for p in range(P):
-            _parachute_stages(t[tb], start[b, p], cds_stage[b, p], cds_o[b, p], diameter[p], n_fill[b, p],
+            parachute_stage_law(t[tb], start[b, p], cds_stage[b, p], cds_o[b, p], diameter[p], n_fill[b, p],
                               expopen[b, p], ck[b, p], t_k[b, p], v_start[b, p], n_stages[p], linear,
                               fill_is_np, False, out[b, p], t_f_out[b, p], t_fp_out[b, p], n_out[b, p],
                               held_out[b, p])

@@ -56,7 +56,7 @@ import numba
 import numpy as np
 
 from .bundle import FlightTest
-from .inflation import DECAY_SHAPES, _parachute_stages, cluster_drag_area
+from .inflation import DECAY_SHAPES, parachute_stage_law, cluster_drag_area
 from .observations import Observations
 from .priors import KindPriors, Normal, NuisancePriors, PriorSet, TruncNormal, stage_role
 
@@ -187,7 +187,7 @@ def _baseline_quadratic_form(theta, consts, gather, cds_o_index, diameter, n_sta
                 stage[5, k] *= cds_o
                 stage[6, k] = _interp(stage[0, k], native_time, native_airspeed)
             cds[p, :] = 0.0
-            _parachute_stages(t, stage[0], stage[5], cds_o, diameter[p], stage[1], stage[2], stage[3],
+            parachute_stage_law(t, stage[0], stage[5], cds_o, diameter[p], stage[1], stage[2], stage[3],
                               stage[4], stage[6], n_stages[p], linear, True, True, cds[p],
                               timing[0], timing[1], timing[2], timing[3])
         weight_ratio = stated_total_weight / (theta[b, scalars[0]] + chute_weight_sum)
