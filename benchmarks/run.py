@@ -42,8 +42,8 @@ import numpy as np
 from scipy import optimize
 
 from cpas_bayes import __version__
-from cpas_bayes.bundle import example_bundles, read_bundle
-from cpas_bayes.fit import SamplerOptions, first_guess, fit_model, prepare_model
+from cpas_bayes.data.bundle import example_bundles, read_bundle
+from cpas_bayes.inference.fit import SamplerOptions, first_guess, fit_model, prepare_model
 
 
 def nelder_mead_point_fit(model, gain_tol=0.01, max_restarts=100):
@@ -91,7 +91,7 @@ def _main_memo():
     """A memo spanning the bundled three-Main example's inflation parameters (uniform families)."""
     import pandas as pd
 
-    from cpas_bayes.memo import Memo, MemoEntry
+    from cpas_bayes.population.memo import Memo, MemoEntry
 
     spec = {"parachute": {"cd_o": (0.50, 0.54)},
             "first": {"n_p": (14.0, 21.0), "n": (14.0, 21.0), "expopen": (1.6, 2.9), "eps": (0.05, 0.07)},
@@ -110,7 +110,7 @@ def _main_memo():
 
 
 def _time_monte_carlo(runs, executor):
-    from cpas_bayes.montecarlo import ensure_compiled, run_monte_carlo
+    from cpas_bayes.loads.montecarlo import ensure_compiled, run_monte_carlo
 
     like = read_bundle(next(p for p in example_bundles() if p.name.startswith("main")))
     ensure_compiled()
@@ -120,7 +120,7 @@ def _time_monte_carlo(runs, executor):
 
 
 def bench_montecarlo():
-    from cpas_bayes.executor import ProcessExecutor
+    from cpas_bayes.core.executor import ProcessExecutor
 
     runs = 10000
     serial = _time_monte_carlo(runs, None)
@@ -137,8 +137,8 @@ def bench_parallel():
     balls), and Monte Carlo batches (one numba thread in the single-process run, for a fair T1)."""
     import numba
 
-    from cpas_bayes.executor import Executor, ProcessExecutor
-    from cpas_bayes.fit import _ensemble_task, find_map, initial_walkers, laplace_covariance
+    from cpas_bayes.core.executor import Executor, ProcessExecutor
+    from cpas_bayes.inference.fit import _ensemble_task, find_map, initial_walkers, laplace_covariance
 
     model = prepare_model(read_bundle(next(p for p in example_bundles() if p.name.startswith("drogue"))))
     options = SamplerOptions(seed=0, n_ensembles=4, max_steps=2000, check_every=500, tau_factor=1e9,

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import tomli_w
 
-from cpas_bayes.bundle import CSV_NAME, EXAMPLES_DIR, TOML_NAME
+from cpas_bayes.data.bundle import CSV_NAME, EXAMPLES_DIR, TOML_NAME
 
 N_PER_LBF = 4.4482216152605
 M_PER_FT = 0.3048

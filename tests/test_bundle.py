@@ -10,10 +10,10 @@ import tomllib
 import numpy as np
 import pytest
 
-from cpas_bayes import bundle as bundle_module
-from cpas_bayes.bundle import read_bundle, write_bundle
-from cpas_bayes.errors import BundleError
-from cpas_bayes.units import UNIT_SYSTEMS
+from cpas_bayes.data import bundle as bundle_module
+from cpas_bayes.data.bundle import read_bundle, write_bundle
+from cpas_bayes.core.errors import BundleError
+from cpas_bayes.core.units import UNIT_SYSTEMS
 
 DROGUE, MAIN = "drogue-clean", "main-clean"
 EXAMPLES = {DROGUE: (("D3", "D6"), 2, 1601), MAIN: (("M1", "M2", "M3"), 3, 4001)}

@@ -17,10 +17,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cpas_bayes.bundle import CSV_NAME as CSV
-from cpas_bayes.bundle import INFLATIONS, KINDS, read_bundle, write_bundle
-from cpas_bayes.bundle import TOML_NAME as TOML
-from cpas_bayes.errors import BundleError
+from cpas_bayes.data.bundle import CSV_NAME as CSV
+from cpas_bayes.data.bundle import INFLATIONS, KINDS, read_bundle, write_bundle
+from cpas_bayes.data.bundle import TOML_NAME as TOML
+from cpas_bayes.core.errors import BundleError
 
 REQUIRED = ("time", "G", "qbar", "airspeed", "gamma")
 EXAMPLES_PER_DEFECT = 60

@@ -7,10 +7,10 @@ import time
 
 import pytest
 
-from cpas_bayes import campaign as cp
-from cpas_bayes.cli import main
-from cpas_bayes.errors import InputError
-from cpas_bayes.synth import write_synthetic
+from cpas_bayes.app import campaign as cp
+from cpas_bayes.app.cli import main
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.data.synth import write_synthetic
 
 
 def test_the_documented_example_config_reads(tmp_path):
@@ -50,7 +50,7 @@ def test_every_bad_bundle_is_listed_and_nothing_is_written(tmp_path, capsys):
 
 
 def test_configurations_are_named_by_kind_count_and_stages():
-    from cpas_bayes.synth import synthesize
+    from cpas_bayes.data.synth import synthesize
 
     assert cp.configuration_of(synthesize("drogue", "none", 1)[0]) == "2xdrogue-2st"
     assert cp.configuration_of(synthesize("main", "none", 1)[0]) == "3xmain-3st"

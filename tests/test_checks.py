@@ -1,4 +1,4 @@
-"""Posterior predictive checks, residual diagnostics and fit figures (cpas_bayes.checks, plots.fit).
+"""Posterior predictive checks, residual diagnostics and fit figures (cpas_bayes.inference.predictive_checks, plots.fit).
 
 One short fit of the clean two-Drogue example is shared by the module (the
 model is correct there); the wrong-model cases edit its observations after the
@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cpas_bayes import checks
-from cpas_bayes.bundle import example_bundles, read_bundle
-from cpas_bayes.fit import SamplerOptions, fit_test
+from cpas_bayes.inference import predictive_checks as checks
+from cpas_bayes.data.bundle import example_bundles, read_bundle
+from cpas_bayes.inference.fit import SamplerOptions, fit_test
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SEED = 7
@@ -257,7 +257,7 @@ def test_check_report_is_json(drogue_fit, drogue_checks):
 
 @pytest.mark.slow
 def test_write_fit_figures_writes_valid_pngs(drogue_fit, drogue_checks, tmp_path):
-    from cpas_bayes.plots.fit import write_fit_figures
+    from cpas_bayes.outputs.plots.fit import write_fit_figures
 
     paths = write_fit_figures(drogue_fit, tmp_path / "figures", checks=drogue_checks, n_draws=150)
     names = {p.name for p in paths}

@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from cpas_bayes import __version__
-from cpas_bayes.cli import main
+from cpas_bayes.app.cli import main
 
 DROGUE, MAIN = "drogue-clean", "main-clean"
 SUMMARY_LINES = {
@@ -124,7 +124,7 @@ def test_as_a_process(example_dir, broken):
     """The real entry point in a fresh interpreter: a good and a refused bundle, no traceback."""
     good, bad = example_dir(DROGUE), broken("NaN in qbar")
     env = {k: v for k, v in os.environ.items() if k != "CPAS_BAYES_DEBUG"}
-    proc = subprocess.run([sys.executable, "-m", "cpas_bayes.cli", "validate", str(good), str(bad)],
+    proc = subprocess.run([sys.executable, "-m", "cpas_bayes.app.cli", "validate", str(good), str(bad)],
                           capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stdout + proc.stderr

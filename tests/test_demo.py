@@ -4,9 +4,9 @@ The full demo (a campaign of nine tests, ~8 minutes) is run by ``make demo``, no
 its campaign machinery is exercised by tests/test_campaign.py on a smaller folder.
 """
 
-from cpas_bayes.bundle import read_bundle
-from cpas_bayes.campaign import configuration_of, folder_digest
-from cpas_bayes.demo import DEMO_CONFIG, DEMO_TESTS, write_demo_bundles
+from cpas_bayes.data.bundle import read_bundle
+from cpas_bayes.app.campaign import configuration_of, folder_digest
+from cpas_bayes.app.demo import DEMO_CONFIG, DEMO_TESTS, write_demo_bundles
 
 
 def test_the_demo_campaign_has_six_drogue_and_three_main_tests_one_hiding_an_effect(tmp_path):

@@ -1,7 +1,7 @@
 """Diagnosis: the naming rule, the frequency guess, and end-to-end naming of hidden effects.
 
 The end-to-end tests hide one effect (the seed draws its magnitude uniformly
-from the simulator's range, :data:`cpas_bayes.synth.EFFECT_MAGNITUDE_RANGE`) or
+from the simulator's range, :data:`cpas_bayes.data.synth.EFFECT_MAGNITUDE_RANGE`) or
 none in a synthetic test and require ``diagnose_test`` to name exactly it:
 every physical effect in a Drogue test, one in a Main test, and three clean
 tests. With five possible answers, guessing passes one case in five; all eight
@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from cpas_bayes import diagnose as dg
-from cpas_bayes.cli import main
-from cpas_bayes.fit import prepare_model
-from cpas_bayes.synth import synthesize, truth_parameter_values, write_synthetic
+from cpas_bayes.inference import diagnose as dg
+from cpas_bayes.app.cli import main
+from cpas_bayes.inference.fit import prepare_model
+from cpas_bayes.data.synth import synthesize, truth_parameter_values, write_synthetic
 
 # -- the rule, on constructed pointwise elpd values ----------------------------
 

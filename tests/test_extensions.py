@@ -5,10 +5,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cpas_bayes.extensions import EXTENSIONS, PHYSICAL, make_extension
-from cpas_bayes.fit import prepare_model
-from cpas_bayes.reduction import reduce_test
-from cpas_bayes.synth import synthesize, truth_parameter_values
+from cpas_bayes.stats.model_terms import EXTENSIONS, PHYSICAL, make_extension
+from cpas_bayes.inference.fit import prepare_model
+from cpas_bayes.data.reduction import reduce_test
+from cpas_bayes.data.synth import synthesize, truth_parameter_values
 
 NEUTRAL = {"k_a": 0.0, "load_scale_change": 0.0, "lag": 0.0, "breathing_amplitude": 0.0,
            "breathing_frequency": 1.0, "breathing_damping": 0.2}

@@ -18,10 +18,10 @@ import shutil
 import numpy as np
 import pytest
 
-from cpas_bayes.bundle import example_bundles, read_bundle
-from cpas_bayes.fit import (SamplerOptions, find_map, first_guess, fit_model, fit_test, laplace_covariance,
+from cpas_bayes.data.bundle import example_bundles, read_bundle
+from cpas_bayes.inference.fit import (SamplerOptions, find_map, first_guess, fit_model, fit_test, laplace_covariance,
                             prepare_model, run_ensemble, initial_walkers)
-from cpas_bayes.synth import synthesize, truth_parameter_values
+from cpas_bayes.data.synth import synthesize, truth_parameter_values
 
 COVERAGE_BAND = (0.80, 0.98)
 

@@ -1,4 +1,4 @@
-"""Properties of the stage law (cpas_bayes.inflation), checked on generated parameters.
+"""Properties of the stage law (cpas_bayes.physics.inflation), checked on generated parameters.
 
 Each property is one of the seed's statements about the law (Eq. 14–18,
 retain-at-disreef of Fig. 29), over the realistic ranges of Drogue and Main
@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cpas_bayes.inflation import (fill_time, n_from_n_p, n_p_from_n, overinflation_ratio, parachute_drag_area,
+from cpas_bayes.physics.inflation import (fill_time, n_from_n_p, n_p_from_n, overinflation_ratio, parachute_drag_area,
                                   peak_fill_time, stage_drag_area)
 
 SETTINGS = settings(max_examples=60, deadline=None)

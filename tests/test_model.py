@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from cpas_bayes.bundle import example_bundles, read_bundle
-from cpas_bayes.fit import first_guess, prepare_model
-from cpas_bayes.inflation import cluster_drag_area, parachute_drag_area
-from cpas_bayes.model import Extension, TestModel
-from cpas_bayes.synth import truth_parameter_values
+from cpas_bayes.data.bundle import example_bundles, read_bundle
+from cpas_bayes.inference.fit import first_guess, prepare_model
+from cpas_bayes.physics.inflation import cluster_drag_area, parachute_drag_area
+from cpas_bayes.stats.model import Extension, TestModel
+from cpas_bayes.data.synth import truth_parameter_values
 
 
 @pytest.fixture(scope="module")
@@ -238,7 +238,7 @@ def test_log_prior_is_the_prior_set_plus_the_stage_order(examples):
 
 
 def test_compiled_point_interpolation_equals_numpy():
-    from cpas_bayes.model import _interp
+    from cpas_bayes.stats.model import _interp
     xp = np.cumsum(np.random.default_rng(1).uniform(0.01, 0.1, 50))
     fp = np.sin(xp)
     for x in np.r_[xp[0] - 1, xp[0], xp[[3, 17]], 0.5 * (xp[20] + xp[21]), xp[-1], xp[-1] + 1,

@@ -14,15 +14,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from cpas_bayes.bundle import EXAMPLES_DIR, read_bundle
-from cpas_bayes.cli import main
-from cpas_bayes.compare import (exceedance_probability, measurement_percentile, stage_comparisons)
-from cpas_bayes.errors import InputError
-from cpas_bayes.memo import Memo, MemoEntry
-from cpas_bayes.montecarlo import (ClusterLayout, compare_fill_time_dispersion, draw_run_inputs, run_monte_carlo,
+from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
+from cpas_bayes.app.cli import main
+from cpas_bayes.loads.compare import (exceedance_probability, measurement_percentile, stage_comparisons)
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.population.memo import Memo, MemoEntry
+from cpas_bayes.loads.montecarlo import (ClusterLayout, compare_fill_time_dispersion, draw_run_inputs, run_monte_carlo,
                                    simulate_runs)
-from cpas_bayes.reduction import Peak, StageInterval, StagePeaks
-from cpas_bayes.trajectory import SimulationOptions, VehicleProperties, VehicleState0, simulate
+from cpas_bayes.data.reduction import Peak, StageInterval, StagePeaks
+from cpas_bayes.physics.trajectory import SimulationOptions, VehicleProperties, VehicleState0, simulate
 
 DROGUE = EXAMPLES_DIR / "drogue-clean"
 MAIN = EXAMPLES_DIR / "main-clean"
@@ -331,9 +331,9 @@ def test_cli_refusals(tmp_path):
 
 @pytest.mark.slow
 def test_posterior_predictive_of_a_quick_fit(drogue, tmp_path):
-    from cpas_bayes.compare import compare_loads
-    from cpas_bayes.fit import SamplerOptions, fit_test
-    from cpas_bayes.posterior import load_fit
+    from cpas_bayes.loads.compare import compare_loads
+    from cpas_bayes.inference.fit import SamplerOptions, fit_test
+    from cpas_bayes.inference.fit_folder import load_fit
 
     fit_test(drogue, SamplerOptions(seed=1, n_ensembles=2, max_steps=1500, progress=False, workers=1),
              out=tmp_path / "fit")

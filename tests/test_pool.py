@@ -1,4 +1,4 @@
-"""Pooling per-test posteriors into population dispersions (cpas_bayes.pool) and ``cpas-bayes pool``.
+"""Pooling per-test posteriors into population dispersions (cpas_bayes.population.pool) and ``cpas-bayes pool``.
 
 Recovery checks draw campaigns from a KNOWN population and ask the pooled
 hyper-posterior to find it again:
@@ -9,7 +9,7 @@ hyper-posterior to find it again:
   drawn exactly by rejection;
 * with real fits of simulated flight tests (slow): the first-stage n_p,
   expopen (correlated) and C_k of every canopy are drawn from the population
-  and the tests are simulated and fitted with :func:`cpas_bayes.fit.fit_test`.
+  and the tests are simulated and fitted with :func:`cpas_bayes.inference.fit.fit_test`.
 
 Tolerances are stated where they are used.
 """
@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from cpas_bayes.cli import main
-from cpas_bayes.errors import InputError
-from cpas_bayes.memo import MemoEntry, load_memo
-from cpas_bayes.pool import (PerTestDraws, PoolWarning, _psis, make_family, pool_fits, pool_pair,
+from cpas_bayes.app.cli import main
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.population.memo import MemoEntry, load_memo
+from cpas_bayes.population.pool import (PerTestDraws, PoolWarning, _psis, make_family, pool_fits, pool_pair,
                              pool_parameter, select_family)
-from cpas_bayes.posterior import load_fit
-from cpas_bayes.priors import LogNormal, Normal, TruncNormal, Uniform
+from cpas_bayes.inference.fit_folder import load_fit
+from cpas_bayes.stats.priors import LogNormal, Normal, TruncNormal, Uniform
 
 # The fit priors of a Drogue's first stage (priors/drogue.toml).
 PRIOR_N_P = LogNormal(10.0, 0.5, 2.0, 50.0)
@@ -140,7 +140,7 @@ def test_grid_loo_equals_refitting_without_each_test():
     """The leave-one-test-out elpd read off the full grid equals p(d_i | d_−i) computed from a hyper-posterior
     fitted without test i (a finer grid), to 0.01 — with only four wide-posterior tests, where p(λ | d_−i)
     differs most from p(λ | d)."""
-    from cpas_bayes.pool import _grid_hyper_posterior, _prepare, log_test_likelihoods
+    from cpas_bayes.population.pool import _grid_hyper_posterior, _prepare, log_test_likelihoods
     from scipy.special import logsumexp
 
     rng = np.random.default_rng(4)
@@ -308,8 +308,8 @@ def write_fit_folder(folder, model, rng, name, seed, n_draws=800):
     ``cpas-bayes fit`` leaves, without the minutes of sampling."""
     import arviz as az
 
-    from cpas_bayes.fit import SamplerOptions
-    from cpas_bayes.posterior import POSTERIOR_NAME, build_summary, save_datatree, write_summary
+    from cpas_bayes.inference.fit import SamplerOptions
+    from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, build_summary, save_datatree, write_summary
 
     truth, width = [], []
     for p in model.parameters:
@@ -345,8 +345,8 @@ def write_fit_folder(folder, model, rng, name, seed, n_draws=800):
 
 @pytest.fixture(scope="module")
 def fit_folders(tmp_path_factory):
-    from cpas_bayes.bundle import EXAMPLES_DIR, read_bundle
-    from cpas_bayes.fit import prepare_model
+    from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
+    from cpas_bayes.inference.fit import prepare_model
 
     model = prepare_model(read_bundle(EXAMPLES_DIR / "drogue-clean"))
     root = tmp_path_factory.mktemp("fits")
@@ -451,7 +451,7 @@ POPULATION = {"n_p": (10.5, 0.12), "expopen": (2.2, 0.20), "ck": (1.30, 0.06), "
 def campaign_test(seed, population_rng):
     """A two-Drogue test whose first-stage n_p, expopen (Gaussian copula, ρ = 0.5 between log n_p and
     expopen) and C_k are drawn from POPULATION; everything else as ``synthesize("drogue", "none", seed)``."""
-    from cpas_bayes.synth import draw_truth, random_streams, simulate_test
+    from cpas_bayes.data.synth import draw_truth, random_streams, simulate_test
 
     truth_rng, _, noise_rng = random_streams(seed)
     truth = draw_truth("drogue", truth_rng)
@@ -482,7 +482,7 @@ def test_population_is_recovered_from_real_fits_of_a_synthetic_campaign(tmp_path
       scatters ±18 %);
     * the (n_p, expopen) correlation's 90 % interval holds the realised correlation of the true values.
     """
-    from cpas_bayes.fit import SamplerOptions, fit_test
+    from cpas_bayes.inference.fit import SamplerOptions, fit_test
 
     population_rng = np.random.default_rng(2024)
     truths, folders = [], []

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cpas_bayes.errors import InputError
-from cpas_bayes.priors import (PRIORS_DIR, LogNormal, Normal, PriorSet, TruncNormal, Uniform, load_kind_priors,
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.stats.priors import (PRIORS_DIR, LogNormal, Normal, PriorSet, TruncNormal, Uniform, load_kind_priors,
                                load_nuisance_priors, prior_from_table, stage_role)
 
 PRIORS = [

@@ -1,4 +1,4 @@
-"""Tests of cpas_bayes.reduction: each equation by hand, Monte Carlo checks of the
+"""Tests of cpas_bayes.data.reduction: each equation by hand, Monte Carlo checks of the
 propagated sigmas, recovery of the example bundles' truth, and the ``reduce`` command.
 
 truth.json is read here only, never by the package.
@@ -15,12 +15,12 @@ import pandas as pd
 import pytest
 from scipy.signal import lfilter, savgol_coeffs, savgol_filter
 
-from cpas_bayes import reduction as red
-from cpas_bayes.bundle import FlightTest, Parachute, Stage, Vehicle, example_bundles, read_bundle
-from cpas_bayes.cli import main
-from cpas_bayes.errors import InputError
-from cpas_bayes.inflation import parachute_drag_area
-from cpas_bayes.units import unit_system
+from cpas_bayes.data import reduction as red
+from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle, example_bundles, read_bundle
+from cpas_bayes.app.cli import main
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.physics.inflation import parachute_drag_area
+from cpas_bayes.core.units import unit_system
 
 EXAMPLES = {p.name: p for p in example_bundles()}
 N_DRAWS = 40_000
@@ -532,7 +532,7 @@ def test_cli_bad_option_writes_nothing(tmp_path, capsys, args):
 @pytest.mark.parametrize("scenario,seed", [("drogue", 5), ("main", 6)])
 def test_synthetic_bundles_reduce_to_their_true_drag_areas(tmp_path, scenario, seed):
     """Our own simulator's bundles, through the file format: scaled drag areas match truth within sigma."""
-    from cpas_bayes.synth import write_synthetic
+    from cpas_bayes.data.synth import write_synthetic
 
     folder = write_synthetic(scenario, "none", seed, tmp_path / scenario)
     test = read_bundle(folder)

@@ -16,12 +16,12 @@ import time
 import numpy as np
 import pytest
 
-from cpas_bayes.bundle import example_bundles, read_bundle
-from cpas_bayes.cli import main
-from cpas_bayes.executor import DaskExecutor, Executor, ProcessExecutor, in_worker, make_executor
-from cpas_bayes.fit import SamplerOptions, fit_model, prepare_model
-from cpas_bayes.montecarlo import run_monte_carlo
-from cpas_bayes.synth import write_synthetic
+from cpas_bayes.data.bundle import example_bundles, read_bundle
+from cpas_bayes.app.cli import main
+from cpas_bayes.core.executor import DaskExecutor, Executor, ProcessExecutor, in_worker, make_executor
+from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
+from cpas_bayes.loads.montecarlo import run_monte_carlo
+from cpas_bayes.data.synth import write_synthetic
 
 from test_montecarlo import MAIN_SPEC, hand_memo
 
@@ -90,8 +90,8 @@ FIT_OPTIONS = dict(seed=3, n_ensembles=2, workers=1, check_every=100, max_steps=
 
 FIT_SCRIPT = """
 import sys
-from cpas_bayes.bundle import read_bundle
-from cpas_bayes.fit import SamplerOptions, fit_model, prepare_model
+from cpas_bayes.data.bundle import read_bundle
+from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
 model = prepare_model(read_bundle(sys.argv[1]))
 fit_model(model, SamplerOptions(**{options}), checkpoint_dir=sys.argv[2])
 """
@@ -145,7 +145,7 @@ def test_ctrl_c_stops_a_fit_with_a_resumable_checkpoint_and_says_how_to_resume(t
     bundle = next(p for p in example_bundles() if p.name.startswith("drogue"))
     out = tmp_path / "fit"
     env = dict(os.environ, MPLBACKEND="Agg")
-    process = subprocess.Popen([sys.executable, "-m", "cpas_bayes.cli", "fit", str(bundle), "--out", str(out),
+    process = subprocess.Popen([sys.executable, "-m", "cpas_bayes.app.cli", "fit", str(bundle), "--out", str(out),
                                 "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env=env)
     _wait_for(out / "checkpoint" / "ensemble_0.h5", process)
@@ -219,7 +219,7 @@ def test_a_campaign_killed_mid_fit_resumes_to_the_same_memo(tmp_path):
     folder, config = _campaign_inputs(tmp_path)
     killed = tmp_path / "killed"
     args = ["campaign", str(folder), "--config", str(config), "--workers", "1"]
-    process = subprocess.Popen([sys.executable, "-m", "cpas_bayes.cli", *args, "--out", str(killed)],
+    process = subprocess.Popen([sys.executable, "-m", "cpas_bayes.app.cli", *args, "--out", str(killed)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=dict(os.environ, MPLBACKEND="Agg"))
     second_ckpt = None
     started = time.time()

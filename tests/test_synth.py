@@ -8,13 +8,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cpas_bayes.bundle import EXAMPLES_DIR, read_bundle, write_bundle
-from cpas_bayes.cli import main
-from cpas_bayes.fileio import save_figure
-from cpas_bayes.synth import (EFFECT_MAGNITUDE_RANGE, EFFECTS, draw_effect_params, draw_truth,
+from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle, write_bundle
+from cpas_bayes.app.cli import main
+from cpas_bayes.core.files import save_figure
+from cpas_bayes.data.synth import (EFFECT_MAGNITUDE_RANGE, EFFECTS, draw_effect_params, draw_truth,
                               load_cell_readings, n_p_consistency, noise_free_drag_areas, random_streams,
                               simulate_test, simulate_truth, synthesize, truth_from_bundle, write_synthetic)
-from cpas_bayes.trajectory import simulate
+from cpas_bayes.physics.trajectory import simulate
 
 SEED = 20240611
 IMU_CHANNELS = ["G", "G_sigma", "qbar", "qbar_sigma", "airspeed", "gamma", "density", "altitude"]
@@ -233,7 +233,7 @@ def test_simulate_test_is_one_function_of_truth_effect_and_noise():
 
 
 def test_figures_are_drawn(tmp_path, drogue_tests):
-    from cpas_bayes.plots.simulation import plot_effect_comparison, plot_simulated_test
+    from cpas_bayes.outputs.plots.simulation import plot_effect_comparison, plot_simulated_test
 
     test, _ = drogue_tests["none"]
     truth = draw_truth("drogue", random_streams(SEED)[0])

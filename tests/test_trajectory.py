@@ -12,14 +12,14 @@ import json
 import numpy as np
 import pytest
 
-from cpas_bayes.atmosphere import geopotential_altitude, standard_atmosphere
-from cpas_bayes.bundle import EXAMPLES_DIR, read_bundle
-from cpas_bayes.effects import (added_mass, breathing_factor, friction_scale, lagged, riser_tension,
+from cpas_bayes.physics.atmosphere import geopotential_altitude, standard_atmosphere
+from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
+from cpas_bayes.physics.effects import (added_mass, breathing_factor, friction_scale, lagged, riser_tension,
                                 sensed_load_factor)
-from cpas_bayes.synth import truth_from_bundle
-from cpas_bayes.trajectory import (BreathingParameters, ClusterParameters, SimulationOptions, VehicleProperties,
+from cpas_bayes.data.synth import truth_from_bundle
+from cpas_bayes.physics.trajectory import (BreathingParameters, ClusterParameters, SimulationOptions, VehicleProperties,
                                    VehicleState0, composite_cluster, simulate, single_run)
-from cpas_bayes.units import STANDARD_GRAVITY as G0
+from cpas_bayes.core.units import STANDARD_GRAVITY as G0
 
 # ---------------------------------------------------------------------------
 # atmosphere

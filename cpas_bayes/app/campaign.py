@@ -1,0 +1,522 @@
+"""The main job: a folder of flight-test bundles in, a model memo and an evidence report out.
+
+``run_campaign(DIR, OUT, config)`` (``cpas-bayes campaign DIR --out OUT``):
+
+1. validate every bundle in DIR (all problems reported together, nothing run);
+2. per test: reduce, fit (posterior + figures + checks), diagnose;
+3. pool the fits by parachute kind and stage into the memo (the fit of a test
+   whose diagnosis names a *measurement* cause — friction drift, sensor lag —
+   is replaced by its extended fit, whose inflation parameters are free of it;
+   physical causes the Monte Carlo does not fly are reported, not pooled away);
+4. per cluster configuration: Monte Carlo with n_p dispersed and the n_p vs n
+   fill-time comparison; per test: the load comparison (memo and own fit);
+5. the report (:mod:`cpas_bayes.outputs.report`).
+
+Every step writes into its own folder under OUT through a temporary folder
+renamed into place, with ``stamp.json`` holding the content hash of its
+inputs: the bytes of the bundle, the prior files, the options and the package
+version, chained through the steps that feed it. A rerun skips every step
+whose hash is unchanged, so adding one test costs one fit (plus the pooled
+steps, which depend on all tests). Fit checkpoints live in
+``OUT/.checkpoints`` so an interrupted fit resumes.
+
+Layout of OUT::
+
+    campaign.json                  manifest: tests, steps, hashes, timings
+    index.html, report.md          the report
+    tests/<test>/reduction/        reduced.csv, reduction.json, reduction.png
+    tests/<test>/fit/              posterior.nc, summary.json, checks.json, map.json, figures
+    tests/<test>/diagnosis/        diagnosis.json, diagnosis.md, figures (+ extended/ fit if named)
+    tests/<test>/compare/          compare.json, compare.png
+    memo/                          memo.toml, memo_draws.csv, memo.md, forest plots
+    montecarlo/<config>/           runs.csv, summary.json, peak_loads.png, fill_times.png,
+                                   np_vs_n.json, fill_time_np_vs_n.png
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time as _time
+import tomllib
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from cpas_bayes import __version__
+from cpas_bayes.data.bundle import TOML_NAME, read_bundle
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.stats.model_terms import EXTENSIONS
+from cpas_bayes.core.files import atomic_directory, write_json
+from cpas_bayes.inference.fit import SamplerOptions
+
+MEASUREMENT_CAUSES = ("friction_drift", "sensor_lag")
+CONFIG_NAME = "campaign.toml"
+STAMP = "stamp.json"
+
+
+# ---------------------------------------------------------------------------
+# configuration
+
+
+@dataclass(frozen=True)
+class CampaignConfig:
+    """Options of a campaign; a TOML file (``--config``) sets any of them."""
+
+    name: str | None = None               # report title; default the folder name
+    seed: int = 0
+    priors: str | None = None             # TOML replacing default priors (path relative to the config file)
+    decay: str = "linear"
+    fit_ensembles: int = 4
+    fit_max_steps: int = 20000
+    fit_tau_factor: float = 50.0
+    fit_check_every: int = 500
+    workers: int = 2
+    diagnose: str = "screen"              # "screen", "full" or "off"
+    candidates: tuple = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
+    montecarlo_runs: int = 10000
+    compare_runs: int = 2000
+    pool_draws: int = 10000
+
+    def sampler(self) -> SamplerOptions:
+        return SamplerOptions(seed=self.seed, n_ensembles=self.fit_ensembles, max_steps=self.fit_max_steps,
+                              tau_factor=self.fit_tau_factor, check_every=self.fit_check_every,
+                              workers=self.workers)
+
+
+# TOML layout: top-level keys and tables mapping onto CampaignConfig fields.
+_TOML_KEYS = {
+    (): {"name": "name", "seed": "seed", "priors": "priors", "decay": "decay", "workers": "workers"},
+    ("fit",): {"ensembles": "fit_ensembles", "max_steps": "fit_max_steps", "tau_factor": "fit_tau_factor",
+               "check_every": "fit_check_every"},
+    ("diagnose",): {"mode": "diagnose", "candidates": "candidates"},
+    ("montecarlo",): {"runs": "montecarlo_runs"},
+    ("compare",): {"runs": "compare_runs"},
+    ("pool",): {"draws": "pool_draws"},
+}
+
+CONFIG_EXAMPLE = """\
+# campaign.toml: every key optional
+name = "EDU Drogue and Main campaign"
+seed = 0
+# priors = "my_priors.toml"   # replaces tables of priors/*.toml
+decay = "linear"              # or "exponential"
+workers = 2
+
+[fit]
+ensembles = 4
+max_steps = 20000
+tau_factor = 50
+
+[diagnose]
+mode = "screen"               # "screen" (MAP screen, then sample), "full", "off"
+candidates = ["added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise"]
+
+[montecarlo]
+runs = 10000
+
+[compare]
+runs = 2000
+
+[pool]
+draws = 10000
+"""
+
+
+def load_config(path) -> CampaignConfig:
+    """Read a campaign TOML; refuse unknown keys and bad values naming the file, key and fix."""
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(path, "", "no such file", "give the path of a campaign TOML file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, "", f"not valid TOML ({exc})", "fix the syntax; see 'cpas-bayes campaign --help'") \
+            from None
+    values = {}
+    for key, value in doc.items():
+        if isinstance(value, dict) and (key,) in _TOML_KEYS:
+            table = _TOML_KEYS[(key,)]
+            for sub, v in value.items():
+                if sub not in table:
+                    raise InputError(path, f"key '{key}.{sub}'", "unknown",
+                                     f"use one of {', '.join(f'{key}.{k}' for k in table)}")
+                values[table[sub]] = v
+        elif key in _TOML_KEYS[()]:
+            values[_TOML_KEYS[()][key]] = value
+        else:
+            known = list(_TOML_KEYS[()]) + [f"[{t[0]}]" for t in _TOML_KEYS if t]
+            raise InputError(path, f"key '{key}'", "unknown", f"use one of {', '.join(known)}")
+    defaults = CampaignConfig()
+    for name, value in values.items():
+        expected = type(getattr(defaults, name)) if getattr(defaults, name) is not None else str
+        if name == "candidates":
+            if not isinstance(value, list) or any(v not in EXTENSIONS for v in value):
+                raise InputError(path, "key 'diagnose.candidates'", f"{value!r} is not a list of extensions",
+                                 f"use names from {', '.join(EXTENSIONS)}")
+            values[name] = tuple(value)
+        elif expected is float and isinstance(value, int):
+            values[name] = float(value)
+        elif not isinstance(value, expected) or isinstance(value, bool):
+            raise InputError(path, f"key for '{name}'", f"{value!r} is not a {expected.__name__}",
+                             f"write a {expected.__name__} (see the example in 'cpas-bayes campaign --help')")
+    if values.get("diagnose", "screen") not in ("screen", "full", "off"):
+        raise InputError(path, "key 'diagnose.mode'", f"{values['diagnose']!r}", 'use "screen", "full" or "off"')
+    if values.get("decay", "linear") not in ("linear", "exponential"):
+        raise InputError(path, "key 'decay'", f"{values['decay']!r}", 'use "linear" or "exponential"')
+    if values.get("priors"):
+        values["priors"] = str((path.parent / values["priors"]).resolve())
+    return replace(defaults, **values)
+
+
+# ---------------------------------------------------------------------------
+# hashing and steps
+
+
+def _digest(*parts) -> str:
+    h = hashlib.sha256()
+    for part in parts:
+        h.update(part if isinstance(part, bytes) else json.dumps(part, sort_keys=True, default=str).encode())
+        h.update(b"\0")
+    return h.hexdigest()[:20]
+
+
+def folder_digest(folder) -> str:
+    """Hash of every file's name and bytes in a folder (a bundle, a priors folder)."""
+    folder = Path(folder)
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and not p.name.startswith("."))
+    return _digest(*[part for p in files for part in (str(p.relative_to(folder)), p.read_bytes())])
+
+
+def priors_digest(config: CampaignConfig) -> str:
+    from cpas_bayes.stats.priors import PRIORS_DIR
+
+    parts = [folder_digest(PRIORS_DIR)]
+    if config.priors:
+        parts.append(Path(config.priors).read_bytes())
+    return _digest(*parts)
+
+
+@dataclass
+class StepRecord:
+    name: str
+    key: str
+    status: str                 # "ran" or "cached"
+    seconds: float
+
+
+def run_step(folder, key, work, records, name, echo):
+    """Run ``work(tmp)`` into a temporary folder renamed onto ``folder`` unless its stamp holds ``key``."""
+    folder = Path(folder)
+    stamp = folder / STAMP
+    if stamp.is_file():
+        try:
+            if json.loads(stamp.read_text())["key"] == key:
+                records.append(StepRecord(name, key, "cached", 0.0))
+                echo(f"  {name}: unchanged, kept")
+                return False
+        except (json.JSONDecodeError, KeyError):
+            pass
+    started = _time.perf_counter()
+    with atomic_directory(folder) as tmp:
+        work(Path(tmp))
+        write_json(Path(tmp) / STAMP, {"key": key, "version": __version__})
+    seconds = _time.perf_counter() - started
+    records.append(StepRecord(name, key, "ran", seconds))
+    echo(f"  {name}: done in {seconds:.0f} s")
+    return True
+
+
+# ---------------------------------------------------------------------------
+# discovery
+
+
+def find_bundles(folder) -> list:
+    """Bundle folders in ``folder`` (itself, or its sub-folders holding a test.toml), sorted."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "", "not a folder", "give the folder that holds the test bundles")
+    if (folder / TOML_NAME).is_file():
+        return [folder]
+    found = sorted(p for p in folder.iterdir() if p.is_dir() and (p / TOML_NAME).is_file())
+    if not found:
+        raise InputError(folder, "", f"no bundle (a folder with {TOML_NAME}) inside",
+                         "put one folder per flight test in it (docs/test-bundle.md)")
+    return found
+
+
+def validate_all(paths):
+    """Read every bundle; raise one InputError listing every bad one."""
+    tests, problems = [], []
+    for p in paths:
+        try:
+            tests.append(read_bundle(p))
+        except InputError as exc:
+            problems.append(str(exc))
+    if problems:
+        raise InputError(Path(paths[0]).parent, f"{len(problems)} of {len(paths)} bundles",
+                         "invalid:\n  " + "\n  ".join(problems),
+                         "fix or remove them (cpas-bayes validate BUNDLE shows one at a time)")
+    names = [t.name for t in tests]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise InputError(Path(paths[0]).parent, f"test names {dupes}", "used by more than one bundle",
+                         "give every bundle its own [test] name")
+    return tests
+
+
+def configuration_of(test) -> str:
+    """A name for the cluster configuration flown: kinds × count and stage count, e.g. ``2xdrogue-2st``."""
+    kinds = {}
+    for p in test.parachutes:
+        kinds.setdefault(p.kind, []).append(len(p.stages))
+    return "+".join(f"{len(v)}x{k}-{max(v)}st" for k, v in sorted(kinds.items()))
+
+
+# ---------------------------------------------------------------------------
+# per-test steps
+
+
+def _reduce_work(test):
+    def work(tmp):
+        from cpas_bayes.data.reduction import reduce_test, write_reduction
+
+        write_reduction(reduce_test(test), tmp)
+    return work
+
+
+def _fit_work(test, config, checkpoint, echo, executor=None):
+    def work(tmp):
+        from cpas_bayes.inference.predictive_checks import check_report, run_checks
+        from cpas_bayes.inference.fit import fit_model, prepare_model
+        from cpas_bayes.outputs.plots.fit import write_fit_figures
+
+        model = prepare_model(test, priors=config.priors, decay=config.decay)
+        fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint,
+                        executor=executor)
+        checks = run_checks(fit, rng=config.seed)
+        write_fit_figures(fit, tmp, checks=checks)
+        write_json(tmp / "checks.json", check_report(fit, checks=checks))
+        write_json(tmp / "map.json", {"names": list(model.names),
+                                      "theta": [float(v) for v in fit.sampling.theta_map],
+                                      "log_posterior": float(fit.sampling.log_post_map)})
+        d = fit.summary["diagnostics"]
+        echo(f"    {test.name}: R-hat max {d['rhat_max']:.3f}, ESS bulk min {d['ess_bulk_min']:.0f}")
+    return work
+
+
+def load_baseline_fit(test, folder, config):
+    """The baseline fit of a test from its fit folder (model rebuilt, MAP from map.json)."""
+    from cpas_bayes.inference.fit import Fit, SamplingResult, prepare_model
+    from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, SUMMARY_NAME, load_datatree
+
+    folder = Path(folder)
+    model = prepare_model(test, priors=config.priors, decay=config.decay)
+    m = json.loads((folder / "map.json").read_text())
+    if m["names"] != list(model.names):
+        raise InputError(folder / "map.json", "key 'names'", "does not match the model's parameters",
+                         "delete the fit folder so that the campaign refits the test")
+    sampling = SamplingResult(names=list(model.names), runs=[], theta_map=np.array(m["theta"]),
+                              log_post_map=float(m["log_posterior"]), options=config.sampler())
+    summary = json.loads((folder / SUMMARY_NAME).read_text())
+    return Fit(model, sampling, load_datatree(folder / POSTERIOR_NAME), summary)
+
+
+def _diagnose_work(test, config, fit_folder, echo, executor=None):
+    def work(tmp):
+        from cpas_bayes.inference.diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test, write_diagnosis
+        from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, build_summary, convergence, save_datatree, write_summary
+
+        fit = load_baseline_fit(test, fit_folder, config)
+        options = DiagnoseOptions(seed=config.seed, candidates=tuple(config.candidates), priors=config.priors,
+                                  decay=config.decay, mode=config.diagnose,
+                                  sampler=replace(DIAGNOSIS_SAMPLER, workers=config.workers, progress=False))
+        d = diagnose_test(test, options, baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
+        write_diagnosis(d, tmp)
+        if d.cause != "none":
+            named = d.candidates[d.cause].fit
+            ext = tmp / "extended"
+            save_datatree(named.tree, ext / POSTERIOR_NAME)
+            write_summary(ext, build_summary(named.model, named.tree, convergence(named.tree, named.sampling),
+                                             named.sampling.options))
+        echo(f"    {test.name}: cause {d.cause}")
+    return work
+
+
+def _compare_work(test, memo_folder, fit_folder, config):
+    def work(tmp):
+        from cpas_bayes.loads.compare import compare_loads, write_comparison
+        from cpas_bayes.population.memo import load_memo
+        from cpas_bayes.inference.fit_folder import load_fit
+
+        comparison = compare_loads(test, load_memo(memo_folder), load_fit(fit_folder), runs=config.compare_runs,
+                                   rng=np.random.default_rng([config.seed, 11]))
+        write_comparison(comparison, tmp)
+    return work
+
+
+def _montecarlo_work(like, memo_folder, config):
+    def work(tmp):
+        from cpas_bayes.population.memo import load_memo
+        from cpas_bayes.loads.montecarlo import (compare_fill_time_dispersion, run_monte_carlo, write_fill_time_comparison,
+                                 write_monte_carlo)
+
+        memo = load_memo(memo_folder)
+        result = run_monte_carlo(memo, like, config.montecarlo_runs, np.random.default_rng([config.seed, 21]))
+        write_monte_carlo(result, tmp, memo, extra={"like": like.name, "seed": config.seed})
+        comparison = compare_fill_time_dispersion(memo, like, config.montecarlo_runs,
+                                                  np.random.default_rng([config.seed, 22]))
+        write_fill_time_comparison(comparison, tmp, extra={"like": like.name, "seed": config.seed})
+    return work
+
+
+# ---------------------------------------------------------------------------
+# tasks: what one worker does (top-level functions, so any executor can ship them)
+
+
+def _test_task(job, report=None, executor=None):
+    """Reduce, fit and diagnose one test; returns its step records and the messages not yet shown."""
+    test, config, out, bundle_key, fit_key, diag_key = job
+    log = []
+    echo = report if report is not None else log.append
+    records = []
+    base = out / "tests" / test.name
+    echo(f"{test.name}:")
+    run_step(base / "reduction", bundle_key, _reduce_work(test), records, f"{test.name} reduction", echo)
+    run_step(base / "fit", fit_key, _fit_work(test, config, out / ".checkpoints" / test.name, echo, executor),
+             records, f"{test.name} fit", echo)
+    if diag_key is not None:
+        run_step(base / "diagnosis", diag_key, _diagnose_work(test, config, base / "fit", echo, executor),
+                 records, f"{test.name} diagnosis", echo)
+    return records, log
+
+
+def _pooled_step_task(job, report=None):
+    """A Monte Carlo of one configuration or the load comparison of one test (after the memo)."""
+    kind, folder, key, name, args = job
+    work = _montecarlo_work(*args) if kind == "montecarlo" else _compare_work(*args)
+    log = []
+    records = []
+    run_step(folder, key, work, records, name, report if report is not None else log.append)
+    return records, log
+
+
+def _collect(results, records, echo):
+    """Add the tasks' step records in task order; show the messages they could not send as they ran."""
+    for recs, log in results:
+        records.extend(recs)
+        for message in log:
+            echo(message)
+
+
+# ---------------------------------------------------------------------------
+# the campaign
+
+
+@dataclass
+class CampaignResult:
+    out: Path
+    tests: list
+    causes: dict
+    steps: list = field(default_factory=list)
+    report: Path | None = None
+    seconds: float = 0.0
+
+
+def pooled_fit_folder(out, test_name):
+    """The fit a test contributes to the memo: its extended fit when a measurement cause was named."""
+    diag = Path(out) / "tests" / test_name / "diagnosis"
+    doc = diag / "diagnosis.json"
+    if doc.is_file() and json.loads(doc.read_text())["cause"] in MEASUREMENT_CAUSES and (diag / "extended").is_dir():
+        return diag / "extended"
+    return Path(out) / "tests" / test_name / "fit"
+
+
+def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=print,
+                 executor=None) -> CampaignResult:
+    """Run (or resume) the campaign of the bundles in ``folder`` into ``out``; return what was done.
+
+    ``executor`` (:mod:`cpas_bayes.core.executor`; default ``config.workers`` local
+    processes) runs the tests side by side — or, with fewer tests than
+    workers, one test at a time with its ensembles side by side — and then
+    the Monte Carlo and load comparison steps. Results do not depend on it.
+    """
+    from cpas_bayes.core.executor import make_executor
+
+    own = executor is None
+    executor = executor if executor is not None else make_executor(config.workers)
+    try:
+        return _run_campaign(folder, Path(out), config, echo, executor)
+    finally:
+        if own:
+            executor.close()
+
+
+def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
+    from cpas_bayes.outputs.report import write_report
+
+    started = _time.perf_counter()
+    paths = find_bundles(folder)
+    tests = validate_all(paths)
+    echo(f"{len(tests)} bundles valid in {folder}; running on {executor.describe()}")
+    records: list[StepRecord] = []
+    prior_key = priors_digest(config)
+    options = asdict(config)
+    fit_keys, diag_keys = {}, {}
+    jobs = []
+    for path, test in zip(paths, tests):
+        bundle_key = _digest(folder_digest(path), __version__)
+        fit_opts = {k: options[k] for k in ("seed", "decay", "fit_ensembles", "fit_max_steps", "fit_tau_factor",
+                                            "fit_check_every")}
+        fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
+        if config.diagnose != "off":
+            diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))
+        jobs.append((test, config, out, bundle_key, fit_keys[test.name], diag_keys.get(test.name)))
+    if executor.workers > 1 and len(jobs) >= executor.workers:
+        results = executor.map(_test_task, jobs, desc="tests", on_report=echo)
+    else:  # fewer tests than workers: one test at a time, each fit's ensembles side by side
+        results = [_test_task(job, echo, executor) for job in jobs]
+    _collect(results, records, echo)
+    causes = {}
+    for test in tests:
+        doc = out / "tests" / test.name / "diagnosis" / "diagnosis.json"
+        causes[test.name] = json.loads(doc.read_text())["cause"] if doc.is_file() else None
+
+    pool_sources = {t.name: pooled_fit_folder(out, t.name) for t in tests}
+    pool_key = _digest(sorted(fit_keys.items()), sorted(diag_keys.items()), config.pool_draws, config.seed)
+
+    def pool_work(tmp):
+        from cpas_bayes.population.pool import pool_folders, write_pool
+
+        result = pool_folders([pool_sources[t.name] for t in tests], seed=config.seed, n_draws=config.pool_draws)
+        write_pool(result, tmp, provenance={"campaign": str(folder), "tests": [t.name for t in tests],
+                                            "fits": {k: str(v.relative_to(out)) for k, v in pool_sources.items()}})
+    echo("memo:")
+    run_step(out / "memo", pool_key, pool_work, records, "pool", echo)
+
+    configs = {}
+    for path, test in zip(paths, tests):
+        configs.setdefault(configuration_of(test), (path, test))
+    echo("Monte Carlo and load comparisons:")
+    jobs = []
+    for name, (path, like) in configs.items():
+        key = _digest(pool_key, folder_digest(path), config.montecarlo_runs, config.seed)
+        jobs.append(("montecarlo", out / "montecarlo" / name, key,
+                     f"Monte Carlo {name} ({config.montecarlo_runs} runs)", (like, out / "memo", config)))
+    for test in tests:
+        key = _digest(pool_key, fit_keys[test.name], config.compare_runs, config.seed)
+        jobs.append(("compare", out / "tests" / test.name / "compare", key, f"{test.name} load comparison",
+                     (test, out / "memo", out / "tests" / test.name / "fit", config)))
+    _collect(executor.map(_pooled_step_task, jobs, desc="steps", on_report=echo), records, echo)
+    seconds = _time.perf_counter() - started
+    manifest = {"campaign": config.name or Path(folder).name, "folder": str(folder), "version": __version__,
+                "config": options, "tests": [t.name for t in tests],
+                "configurations": {k: v[1].name for k, v in configs.items()},
+                "causes": causes, "pooled_fits": {k: str(v.relative_to(out)) for k, v in pool_sources.items()},
+                "steps": [asdict(r) for r in records], "seconds": seconds}
+    write_json(out / "campaign.json", manifest)
+    report = write_report(out)
+    echo(f"report: {report}")
+    return CampaignResult(out=out, tests=[t.name for t in tests], causes=causes, steps=records, report=report,
+                          seconds=_time.perf_counter() - started)

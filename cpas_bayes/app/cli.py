@@ -1,0 +1,452 @@
+"""The ``cpas-bayes`` command line.
+
+Each command is a thin face over a library function: parse options, call,
+print where the outputs are. Bad input ends with one message naming the file,
+the place and the fix (exit status 2); an unexpected fault ends with a short
+message (exit status 1) and the traceback only when ``CPAS_BAYES_DEBUG=1``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import traceback
+from pathlib import Path
+
+import click
+
+from cpas_bayes import __version__
+from cpas_bayes.data.bundle import read_bundle, summary
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.app.campaign import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
+
+CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
+
+# What Ctrl-C leaves behind, said by the command that is running (see main()).
+_INTERRUPTED = ["interrupted; nothing half-written was left (every output is written to a temporary file and "
+                "renamed)"]
+
+
+def _on_interrupt(message):
+    _INTERRUPTED[0] = f"interrupted; {message}"
+
+
+def parallel_options(default_workers=2, what="tasks", note=""):
+    """``--workers`` and ``--scheduler`` for a command that runs independent tasks."""
+    def decorate(fn):
+        fn = click.option("--scheduler", default=None, metavar="ADDRESS|local",
+                          help="Run the tasks on Dask: a scheduler address (tcp://HOST:PORT) or 'local' for a "
+                               "LocalCluster of --workers processes. Results are identical to the local pool.")(fn)
+        return click.option("--workers", type=click.IntRange(min=1), default=default_workers,
+                            show_default=default_workers is not None,
+                            help=f"Processes running {what} at once (one BLAS thread each){note}.")(fn)
+    return decorate
+
+
+def _executor(workers, scheduler):
+    from cpas_bayes.core.executor import make_executor
+
+    executor = make_executor(workers, scheduler)
+    if executor.kind != "serial":
+        click.echo(f"running on {executor.describe()}")
+    return executor
+
+
+def _format_summary(s):
+    lines = [f"{s['name']}  ({s['phase']}, {s['units']} units)",
+             f"  {s['samples']} samples over {s['duration_s']:.2f} s at {s['sample_rate_hz']:.1f} Hz"]
+    for p in s["parachutes"]:
+        extras = [x for x, on in (("load cell", p["load_cell"]), ("fly-out angle", p["flyout_angle"])) if on]
+        stages = ", ".join(f"{st['label']} @ {st['start']:.3f} s" for st in p["stages"])
+        lines.append(f"  {p['id']}: {p['kind']}, {p['inflation']} mass, D_o {p['diameter']:g}"
+                     f"{'; ' + ', '.join(extras) if extras else ''}")
+        lines.append(f"      stages: {stages}")
+    lines.append(f"  channels: {', '.join(s['channels'])}")
+    return "\n".join(lines)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="cpas-bayes")
+def cli():
+    """Parachute flight-test reduction, Bayesian inflation reconstruction and Monte Carlo loads."""
+
+
+@cli.command()
+@click.argument("bundles", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the summaries as JSON.")
+def validate(bundles, as_json):
+    """Check flight-test bundle folders and summarise them.
+
+    Exit status is non-zero if any bundle is refused; every refusal is printed.
+    """
+    failures, summaries = 0, []
+    for path in bundles:
+        try:
+            summaries.append(summary(read_bundle(path)))
+        except InputError as exc:
+            failures += 1
+            click.secho(f"refused: {exc}", fg="red", err=True)
+    if as_json:
+        click.echo(json.dumps(summaries, indent=2))
+    else:
+        for s in summaries:
+            click.echo(_format_summary(s))
+    if failures:
+        raise SystemExit(2)
+
+
+@cli.command()
+@click.option("--out", type=click.Path(path_type=Path), default=Path("reports/demo"), show_default=True,
+              help="Folder for the demo report.")
+def demo(out):
+    """Run the main job on the bundled data and write its report."""
+    from cpas_bayes.app.demo import run_demo
+
+    index = run_demo(out, echo=click.echo)
+    click.echo(f"report: {index}")
+
+
+@cli.command("reduce")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for reduced.csv, reduction.json and reduction.png.")
+@click.option("--scale", default="constant", show_default=True, metavar="constant|linear",
+              help="Load-cell friction scale factor: one constant, or a linear trend through the windows.")
+@click.option("--window", "windows", multiple=True, metavar="T0:T1",
+              help="Steady-state calibration window in seconds (repeat for several); replaces the automatic ones.")
+def reduce_command(bundle, out, scale, windows):
+    """Reduce a flight test: parachute loads and drag areas with 1-sigma, friction scale factor, peaks."""
+    from cpas_bayes.data.reduction import parse_window, reduce_test, write_reduction
+
+    test = read_bundle(bundle)
+    chosen = [parse_window(w, test.label) for w in windows] or None
+    red = reduce_test(test, scale=scale, windows=chosen)
+    paths = write_reduction(red, out)
+    u = test.units
+    force = u.label("force")
+    click.echo(f"reduced {test.name} ({u.name} units, {len(test.parachutes)} parachutes)")
+    if red.scale is not None:
+        sc = red.scale
+        per_window = ", ".join(f"{v:.4f} ± {s:.4f} [{a:.2f}–{b:.2f} s]"
+                               for v, s, (a, b) in zip(sc.values, sc.sigma, sc.windows))
+        click.echo(f"  friction scale factor by window ({sc.source}): {per_window}")
+        if sc.mode == "constant":
+            click.echo(f"  applied constant scale factor: {sc.factor:.4f} ± {sc.factor_sigma:.4f}")
+        else:
+            click.echo("  applied linear scale factor through the window midpoints")
+    for pk in red.peaks:
+        acc = pk.accelerometer
+        line = (f"  {pk.stage.label}: peak load accelerometer {u.from_si(acc.load, 'force'):,.0f} ± "
+                f"{u.from_si(acc.sigma, 'force'):,.0f} {force} at {acc.time:.2f} s")
+        if pk.load_cells is not None:
+            lc = pk.load_cells
+            line += (f"; load cells {u.from_si(lc.load, 'force'):,.0f} ± {u.from_si(lc.sigma, 'force'):,.0f} "
+                     f"{force} at {lc.time:.2f} s")
+        click.echo(line)
+    for share in red.load_share:
+        click.echo(f"  {share.stage.label}: mean load share "
+                   + ", ".join(f"{pid} {100 * v:.0f}%" for pid, v in share.mean.items()))
+    for path in paths.values():
+        click.echo(f"wrote {path}")
+
+
+@cli.command("synth")
+@click.option("--scenario", type=click.Choice(["drogue", "main"]), required=True,
+              help="Scenario library entry: two Drogues (infinite mass) or three Mains (finite mass).")
+@click.option("--effect", type=click.Choice(["none", "added_mass", "friction_drift", "sensor_lag",
+                                             "canopy_breathing"]), default="none", show_default=True,
+              help="Hidden effect to put in the data (at most one).")
+@click.option("--magnitude", type=float, default=None,
+              help="Effect size (k_a; friction drop; lag in s; breathing amplitude). Drawn from the seed if omitted.")
+@click.option("--seed", type=int, required=True, help="Seed of the truth, the effect size and the noise.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Bundle folder to write.")
+def synth_command(scenario, effect, magnitude, seed, out):
+    """Simulate a synthetic flight test with known truth and write it as a bundle with truth.json."""
+    from cpas_bayes.data.synth import write_synthetic
+
+    if magnitude is not None and effect == "none":
+        raise click.BadParameter("a magnitude needs an effect other than 'none'", param_hint="--magnitude")
+    try:
+        folder = write_synthetic(scenario, effect, seed, out, magnitude=magnitude)
+    except ValueError as exc:  # an impossible effect size, said plainly
+        raise click.BadParameter(str(exc), param_hint="--magnitude") from None
+    click.echo(f"wrote {folder} ({scenario}, effect {effect}, seed {seed}) with truth.json")
+
+
+@cli.command("fit")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for the fit's outputs.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the MAP starts and the sampler.")
+@click.option("--priors", type=click.Path(path_type=Path), default=None,
+              help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
+@click.option("--decay", type=click.Choice(["linear", "exponential"]), default="linear", show_default=True,
+              help="Shape of the drag-area decay after the over-inflation peak.")
+@parallel_options(what="ensembles")
+@click.option("--ensembles", type=int, default=4, show_default=True, help="Independent emcee ensembles (R-hat).")
+def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles):
+    """Posterior of every inflation parameter of one flight test (emcee).
+
+    Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
+    resumable checkpoints in OUT/checkpoint/ (rerun the same command to resume).
+    """
+    from cpas_bayes.data.bundle import read_bundle
+    from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
+    from cpas_bayes.outputs.plots.fit import write_fit_figures
+
+    test = read_bundle(bundle)
+    options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
+    click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}")
+    model = prepare_model(test, priors=priors, decay=decay)
+    _on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
+                  "rerun the same command to resume from it")
+    with _executor(min(workers, ensembles), scheduler) as executor:
+        fit = fit_model(model, options, out=out, echo=click.echo, executor=executor)
+    figures = write_fit_figures(fit, out)
+    d = fit.summary["diagnostics"]
+    click.echo(f"{'converged' if d['converged'] else 'NOT converged'}: R-hat max {d['rhat_max']:.4f}, "
+               f"ESS bulk min {d['ess_bulk_min']:.0f}, tau max {d['tau_max']:.0f} steps, "
+               f"acceptance {d['acceptance']:.2f}")
+    click.echo(f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {len(figures)} figures")
+
+
+@cli.command("montecarlo")
+@click.option("--memo", "memo_path", type=click.Path(path_type=Path), required=True,
+              help="memo.toml (or its folder) with the population distributions.")
+@click.option("--like", "like", type=click.Path(path_type=Path), required=True,
+              help="Bundle whose configuration (parachutes, vehicle, initial state, cutter times) is flown.")
+@click.option("--runs", type=click.IntRange(min=1), default=10000, show_default=True, help="Monte Carlo runs.")
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for runs.csv, summary.json, peak_loads.png and fill_times.png.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every draw.")
+@click.option("--mode", type=click.Choice(["n_p", "n"]), default="n_p", show_default=True,
+              help="Disperse n_p and derive n per run (Eq. 18), or disperse n itself (the old way).")
+@click.option("--independent", is_flag=True,
+              help="Draw every parameter independently from its memo distribution instead of resampling the "
+                   "joint population draws.")
+@click.option("--compare-np", "compare_np", is_flag=True,
+              help="Also run both modes with independent parameters and write np_vs_n.json and "
+                   "fill_time_np_vs_n.png (peak fill times outside the tested range).")
+@click.option("--batch", type=click.IntRange(min=1), default=None, help="Runs simulated at once (default 1000).")
+@parallel_options(default_workers=1, what="batches of runs")
+def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, compare_np, batch, workers, scheduler):
+    """Monte Carlo peak loads and fill times of a test's cluster with parameters from the model memo."""
+    import numpy as np
+
+    from cpas_bayes.population.memo import load_memo
+    from cpas_bayes.loads.montecarlo import (compare_fill_time_dispersion, run_monte_carlo, write_fill_time_comparison,
+                             write_monte_carlo)
+
+    memo = load_memo(memo_path)
+    test = read_bundle(like)
+    rng = np.random.default_rng(seed)
+    with _executor(workers, scheduler) as executor:
+        result = run_monte_carlo(memo, test, runs, rng, mode=mode, joint=not independent, batch=batch,
+                                 executor=executor)
+        comparison = (compare_fill_time_dispersion(memo, test, runs, rng, batch=batch, executor=executor)
+                      if compare_np else None)
+    extra = {"seed": seed, "memo_path": str(memo_path), "like_path": str(like)}
+    paths = write_monte_carlo(result, out, memo=memo, extra=extra)
+    force = test.units.label("force")
+    click.echo(f"{runs:,} runs of {test.name} ({mode} dispersed, "
+               f"{'independent parameters' if independent else 'joint population draws'}) in "
+               f"{result.runtime_s:.1f} s ({result.runs_per_second:,.0f} runs/s, {result.engine} engine)")
+    for stage in result.summary()["stages"]:
+        q = stage["peak_load"]
+        if q:
+            click.echo(f"  {stage['stage']}: peak load median {q['q50']:,.0f} {force}, "
+                       f"99 % {q['q99']:,.0f} {force}")
+    if comparison is not None:
+        paths.update({f"np_vs_n {k}": v for k, v in write_fill_time_comparison(comparison, out, extra).items()})
+        for g in comparison.groups:
+            click.echo(f"  {g.kind} {g.stage}: t_fp outside the tested range {100 * g.fraction_outside('n_p'):.1f} % "
+                       f"(n_p dispersed) vs {100 * g.fraction_outside('n'):.1f} % (n dispersed)")
+    for path in paths.values():
+        click.echo(f"wrote {path}")
+
+
+@cli.command("compare")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@click.option("--memo", "memo_path", type=click.Path(path_type=Path), default=None,
+              help="memo.toml: compare with the population predictive (Monte Carlo of this configuration).")
+@click.option("--fit", "fit_path", type=click.Path(path_type=Path), default=None,
+              help="Fit folder of this test: compare with its posterior predictive.")
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for compare.json and compare.png.")
+@click.option("--runs", type=click.IntRange(min=1), default=2000, show_default=True,
+              help="Predicted runs per source.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every draw.")
+@click.option("--mode", type=click.Choice(["n_p", "n"]), default="n_p", show_default=True,
+              help="Fill constant dispersed in the memo Monte Carlo.")
+@click.option("--independent", is_flag=True, help="Memo Monte Carlo with independently drawn parameters.")
+def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independent):
+    """Measured peak loads against predicted distributions, with the measurement's sigma."""
+    import numpy as np
+
+    from cpas_bayes.loads.compare import compare_loads, write_comparison
+    from cpas_bayes.population.memo import load_memo
+    from cpas_bayes.inference.fit_folder import load_fit
+
+    if memo_path is None and fit_path is None:
+        raise click.UsageError("give --memo, --fit or both")
+    test = read_bundle(bundle)
+    memo = load_memo(memo_path) if memo_path is not None else None
+    fit = load_fit(fit_path) if fit_path is not None else None
+    comparison = compare_loads(test, memo=memo, fit=fit, runs=runs, rng=np.random.default_rng(seed), mode=mode,
+                               joint=not independent)
+    paths = write_comparison(comparison, out, extra={"seed": seed})
+    u = test.units
+    for c in comparison.comparisons:
+        click.echo(f"  {c.stage_label} {c.channel} vs {c.source}: measured {u.from_si(c.measured, 'force'):,.0f} ± "
+                   f"{u.from_si(c.sigma, 'force'):,.0f} {u.label('force')}, percentile {c.percentile:.1f}, "
+                   f"P(prediction > measurement) {c.p_exceed:.2f}")
+    for path in paths.values():
+        click.echo(f"wrote {path}")
+
+
+@cli.command("pool")
+@click.argument("fitdirs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Memo folder: memo.toml, memo_draws.csv, memo.md and figures.")
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Seed of the subsampling, hyper-posterior and population-predictive draws.")
+def pool_command(fitdirs, out, seed):
+    """Pool fitted tests into population dispersions: the model memo.
+
+    Per parachute kind and stage: n_p, n, expopen, ck, tk, eps and cd_o get a
+    family chosen by leave-one-test-out predictive density, a hyper-posterior
+    and population-predictive draws; n_p and expopen keep their correlation
+    when it predicts better. Fit folders are those written by 'cpas-bayes fit'.
+    """
+    import warnings
+
+    from cpas_bayes.population.pool import PoolWarning, pool_folders, write_pool
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PoolWarning)
+        result = pool_folders(fitdirs, seed=seed)
+        paths = write_pool(result, out)
+    for w in caught:
+        if issubclass(w.category, PoolWarning):
+            click.secho(f"warning: {w.message}", fg="yellow", err=True)
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    click.echo(f"pooled {len(result.tests)} tests ({', '.join(result.tests)}) into {len(result.entries)} entries")
+    for (kind, stage), pair in sorted(result.pairs.items()):
+        click.echo(f"  {kind} {stage}: rho(n_p, expopen) {pair.rho_median:.2f} "
+                   f"[{pair.rho_interval[0]:.2f}, {pair.rho_interval[1]:.2f}], "
+                   f"{'kept' if pair.keep else 'not kept'} (delta elpd {pair.elpd_diff:+.2f})")
+    click.echo(f"wrote {paths['memo']}, {paths['draws']}, {paths['markdown']} and {len(paths['figures'])} figures")
+
+
+@cli.command("diagnose")
+@click.argument("bundle", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for diagnosis.json, diagnosis.md, candidates.csv and the figures.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every fit of the comparison.")
+@click.option("--priors", type=click.Path(path_type=Path), default=None,
+              help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
+@click.option("--candidates", default=",".join(CANDIDATE_NAMES), show_default=True,
+              help="Comma-separated extensions to try against the baseline.")
+@parallel_options(what="candidate fits (or one fit's ensembles)")
+def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
+    """Find what the baseline simulation gets wrong in one test and name the cause.
+
+    Fits the baseline and the baseline plus each candidate term, compares them
+    by PSIS-LOO and names the physical term that wins clearly (or none); see
+    OUT/diagnosis.md.
+    """
+    from dataclasses import replace
+
+    from cpas_bayes.inference.diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test, write_diagnosis
+    from cpas_bayes.stats.model_terms import EXTENSIONS
+
+    names = tuple(c.strip() for c in candidates.split(",") if c.strip())
+    unknown = [n for n in names if n not in EXTENSIONS]
+    if unknown or not names:
+        raise click.BadParameter(f"unknown extension(s) {', '.join(unknown) or '(none given)'}; use any of "
+                                 f"{', '.join(EXTENSIONS)}", param_hint="--candidates")
+    test = read_bundle(bundle)
+    options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
+                              sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
+    _on_interrupt(f"nothing was written to {out} (a diagnosis writes its files at the end); rerun the command")
+    with _executor(workers, scheduler) as executor:
+        diagnosis = diagnose_test(test, options, echo=click.echo, executor=executor)
+    path = write_diagnosis(diagnosis, out)
+    table = diagnosis.versus_baseline.sort_values("elpd_diff", ascending=False)
+    for r in table.to_dict("records"):
+        click.echo(f"  {r['name']:<17} elpd gain {r['elpd_diff']:+9.1f} ± {r['elpd_diff_se']:.1f}")
+    click.echo(f"cause: {diagnosis.cause}")
+    for reason in diagnosis.reasons:
+        click.echo(f"  - {reason}")
+    click.echo(f"wrote {path}, {out / 'diagnosis.md'} and the figures")
+
+
+@cli.command("campaign", epilog="A campaign TOML (--config), every key optional:\n\n"
+             + "\n\n".join("\b\n" + part for part in CAMPAIGN_EXAMPLE.strip().split("\n\n")))
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True,
+              help="Folder for every step's outputs and the report (index.html, report.md).")
+@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None,
+              help="Campaign TOML with the options (see below).")
+@parallel_options(default_workers=None, what="tests", note="; overrides --config, default 2")
+@click.option("--diagnose", "diagnose_mode", type=click.Choice(["screen", "full", "off"]), default=None,
+              help="Diagnosis of each test (overrides --config; default screen).")
+def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode):
+    """From a folder of flight-test bundles to a model memo, Monte Carlo, load comparisons and a report.
+
+    Validates every bundle in FOLDER, reduces, fits, diagnoses and pools them,
+    runs the Monte Carlo of each cluster configuration and the load
+    comparisons, and writes OUT/index.html. A rerun skips every step whose
+    inputs (bundle bytes, priors, options) have not changed.
+    """
+    from dataclasses import replace
+
+    from cpas_bayes.app.campaign import CampaignConfig, load_config, run_campaign
+
+    config = load_config(config_path) if config_path else CampaignConfig()
+    if workers is not None:
+        config = replace(config, workers=workers)
+    if diagnose_mode is not None:
+        config = replace(config, diagnose=diagnose_mode)
+    _on_interrupt(f"finished steps are kept in {out} and running fits' checkpoints in {out / '.checkpoints'}; "
+                  "rerun the same command to resume")
+    with _executor(config.workers, scheduler) as executor:
+        result = run_campaign(folder, out, config, echo=click.echo, executor=executor)
+    ran = sum(s.status == "ran" for s in result.steps)
+    click.echo(f"{len(result.tests)} tests, {ran} steps run, {len(result.steps) - ran} kept, "
+               f"{result.seconds:.0f} s; causes: "
+               + ", ".join(f"{t} {c}" for t, c in result.causes.items() if c not in (None, "none")) or "none")
+
+
+# -- commands added by later capabilities go above this line --
+
+
+def main(argv=None):
+    """Entry point: run the CLI, turning bad input into one clear message."""
+    try:
+        cli.main(args=argv, prog_name="cpas-bayes", standalone_mode=False)
+    except InputError as exc:
+        click.secho(f"error: {exc}", fg="red", err=True)
+        return 2
+    except click.exceptions.Abort:
+        click.echo(_INTERRUPTED[0], err=True)
+        return 130
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else 1
+    except KeyboardInterrupt:
+        click.echo(_INTERRUPTED[0], err=True)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the last line of defence for a CLI user
+        if os.environ.get("CPAS_BAYES_DEBUG") == "1":
+            traceback.print_exc()
+        click.secho(f"internal error: {type(exc).__name__}: {exc}\n"
+                    "rerun with CPAS_BAYES_DEBUG=1 to see the traceback and report it.", fg="red", err=True)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,317 @@
+"""Where independent tasks run: in this process, a local process pool, or a Dask cluster.
+
+One small interface serves every parallel step of the package (a fit's
+ensembles, a diagnosis' candidates, a campaign's tests, Monte Carlo batches)::
+
+    with make_executor(workers=4) as ex:                      # local processes
+    with make_executor(workers=4, scheduler="local") as ex:   # a Dask LocalCluster
+    with make_executor(scheduler="tcp://host:8786") as ex:    # a running Dask scheduler
+        results = ex.map(task, items)
+
+``map`` returns the results in the order of ``items`` whatever order they
+finished in, and every task carries its own seed, so a step gives the same
+bytes on any executor and any number of workers. Each worker runs one BLAS
+thread: the tasks are the parallelism, and a multi-threaded BLAS could change
+the last bits of a sum from one machine load to the next.
+
+Tasks are top-level functions of ``cpas_bayes`` taking one picklable item. A
+task that reports progress takes a second argument ``report`` (a callable, or
+None where the executor cannot carry messages back, as on Dask); ``map(...,
+on_report=f)`` calls ``f(*message)`` in the calling process for each one.
+
+Ctrl-C stops the workers at once and raises ``KeyboardInterrupt`` in the
+caller; every task writes its outputs atomically and checkpoints as it goes,
+so rerunning the same command resumes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+
+_BLAS_LIMIT = None  # keeps the threadpoolctl limiter alive in a worker
+_IN_WORKER = False  # set in worker processes: tasks started from a task run in it, one after another
+
+
+def limit_blas_threads():
+    """One BLAS/OpenMP/numba thread in this process (called in every worker)."""
+    global _BLAS_LIMIT, _IN_WORKER
+    _IN_WORKER = True
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"
+    import numba
+    from threadpoolctl import threadpool_limits
+
+    _BLAS_LIMIT = threadpool_limits(limits=1)
+    numba.set_num_threads(1)  # the Monte Carlo kernel's prange: the workers are the parallelism
+
+
+_REPORTS = None  # in a pool worker: the queue that carries tasks' messages to the parent
+
+
+def _process_worker_init(reports):
+    global _REPORTS
+    _REPORTS = reports
+    # The parent handles Ctrl-C and terminates the pool; workers must not die mid-write on it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    limit_blas_threads()
+
+
+def _progress_bar(total, desc, progress):
+    from tqdm import tqdm
+
+    show = sys.stderr.isatty() if progress is None else bool(progress)
+    return tqdm(total=total, desc=desc, unit="task", disable=not show or total <= 1, leave=False)
+
+
+class Executor:
+    """Runs tasks one after another in this process (the reference the others must match)."""
+
+    kind = "serial"
+    workers = 1
+
+    def map(self, fn, items, desc="tasks", progress=None, on_report=None):
+        """``[fn(item) for item in items]``, with ``fn(item, report)`` when ``on_report`` is given."""
+        items = list(items)
+        out = []
+        with _progress_bar(len(items), desc, progress) as bar:
+            for item in items:
+                out.append(fn(item, on_report) if on_report is not None else fn(item))
+                bar.update(1)
+        return out
+
+    def describe(self):
+        return "this process"
+
+    def close(self):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def _call_reporting(args):
+    """Run one task in a pool worker; its messages, then an end marker, go through the worker's queue."""
+    fn, item, index = args
+    if index is None:
+        return fn(item)
+    try:
+        return fn(item, lambda *message: _REPORTS.put((index, message)))
+    finally:
+        _REPORTS.put((index, None))  # after every message of this task (one queue, first in first out)
+
+
+def _call_without_reports(args):
+    fn, item = args
+    return fn(item, None)
+
+
+class ProcessExecutor(Executor):
+    """A local pool of ``workers`` processes.
+
+    Workers are forked from a fork server that has imported the package but
+    run nothing (plain fork is unsafe here: the Monte Carlo kernel starts
+    OpenMP threads, and a process forked after that aborts). A worker that
+    dies (killed, out of memory) fails the map with an error instead of
+    hanging it.
+    """
+
+    kind = "processes"
+    _PRELOAD = ["cpas_bayes.inference.fit", "cpas_bayes.loads.montecarlo", "cpas_bayes.inference.diagnose", "cpas_bayes.app.campaign"]
+
+    def __init__(self, workers):
+        import multiprocessing as mp
+
+        if workers < 1:
+            raise ValueError(f"workers must be at least 1, got {workers}")
+        self.workers = int(workers)
+        if "forkserver" in mp.get_all_start_methods():
+            from multiprocessing import forkserver
+
+            self._ctx = mp.get_context("forkserver")
+            self._ctx.set_forkserver_preload(self._PRELOAD)
+            # Start the server now: its imports (~2 s) overlap the caller's work until the first map.
+            forkserver.ensure_running()
+        else:
+            self._ctx = mp.get_context("spawn")
+        self._pool = None
+        self._reports = None
+        self._not_ours = set()
+
+    def _ensure_pool(self):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        if self._pool is None:
+            self._not_ours = set(mp.active_children())
+            self._reports = self._ctx.Queue()
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=self._ctx, initializer=_process_worker_init,
+                                             initargs=(self._reports,))
+        return self._pool
+
+    def _drain(self, on_report, open_tasks, timeout=0.0):
+        import queue
+
+        while True:
+            try:
+                index, message = self._reports.get(timeout=timeout) if timeout else self._reports.get_nowait()
+            except queue.Empty:
+                return
+            if message is None:
+                open_tasks.discard(index)
+            else:
+                on_report(*message)
+
+    def map(self, fn, items, desc="tasks", progress=None, on_report=None):
+        from concurrent.futures import FIRST_EXCEPTION, wait
+
+        items = list(items)
+        if not items:
+            return []
+        pool = self._ensure_pool()
+        reporting = on_report is not None
+        futures = []
+        try:
+            futures = [pool.submit(_call_reporting, (fn, item, i if reporting else None))
+                       for i, item in enumerate(items)]
+            open_tasks = set(range(len(items))) if reporting else set()
+            with _progress_bar(len(items), desc, progress) as bar:
+                done = 0
+                while done < len(futures):
+                    # a short wait keeps Ctrl-C and the messages responsive
+                    finished, _ = wait(futures, timeout=0.2, return_when=FIRST_EXCEPTION)
+                    if reporting:
+                        self._drain(on_report, open_tasks)
+                    if any(f.exception() is not None for f in finished):
+                        break
+                    bar.update(len(finished) - done)
+                    done = len(finished)
+            results = [f.result() for f in futures]
+            while open_tasks:  # the last messages may still be in the queue's pipe
+                self._drain(on_report, open_tasks, timeout=1.0)
+            return results
+        except BaseException:
+            # Ctrl-C or a failed task: stop the rest now; their checkpoints are complete files.
+            for f in futures:
+                f.cancel()
+            self._terminate()
+            raise
+
+    def _terminate(self):
+        import multiprocessing as mp
+
+        if self._pool is None:
+            return
+        workers = [p for p in mp.active_children() if p not in self._not_ours]
+        for p in workers:
+            p.terminate()
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        for p in workers:
+            p.join()
+        self._pool = None
+
+    def describe(self):
+        return f"{self.workers} local processes"
+
+    def close(self):
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+        if self._reports is not None:
+            self._reports.close()
+            self._reports.join_thread()
+            self._reports = None
+
+
+class DaskExecutor(Executor):
+    """Tasks on a Dask distributed cluster: a running scheduler (``address``) or a LocalCluster.
+
+    Workers of a remote cluster need ``cpas_bayes`` installed and must see the
+    output folder (a shared file system), since each task writes its own files.
+    """
+
+    kind = "dask"
+
+    def __init__(self, address=None, workers=2):
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:  # pragma: no cover - depends on the installation
+            raise RuntimeError("the Dask engine needs the 'distributed' package: "
+                               "pip install 'cpas_bayes[dask]'") from None
+        self.address = address
+        self.cluster = None
+        if address is None:
+            # Worker processes (not threads): the likelihood holds the GIL between numpy calls.
+            self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                        dashboard_address=None, silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+        else:
+            self.client = Client(address)
+        self.client.run(limit_blas_threads)
+        self.workers = max(1, len(self.client.scheduler_info()["workers"]))
+
+    def map(self, fn, items, desc="tasks", progress=None, on_report=None):
+        from distributed import as_completed
+
+        items = list(items)
+        if not items:
+            return []
+        args = [(fn, item) for item in items] if on_report is not None else items
+        target = _call_without_reports if on_report is not None else fn
+        futures = self.client.map(target, args, pure=False)
+        try:
+            with _progress_bar(len(items), desc, progress) as bar:
+                for _ in as_completed(futures):
+                    bar.update(1)
+            return self.client.gather(futures)
+        except BaseException:
+            self.client.cancel(futures)
+            raise
+
+    def describe(self):
+        where = self.address or "a LocalCluster"
+        return f"Dask on {where} ({self.workers} workers)"
+
+    def close(self):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def in_worker() -> bool:
+    """True inside a task of a process pool or a Dask worker."""
+    import multiprocessing as mp
+
+    if _IN_WORKER or mp.current_process().daemon:
+        return True
+    if "distributed" in sys.modules:
+        try:
+            sys.modules["distributed"].get_worker()
+            return True
+        except ValueError:
+            return False
+    return False
+
+
+def make_executor(workers=1, scheduler=None) -> Executor:
+    """The executor for ``--workers N`` and ``--scheduler``.
+
+    ``scheduler`` None: this process when ``workers`` is 1, else a local
+    process pool; ``"local"``: a Dask LocalCluster of ``workers`` processes;
+    ``"tcp://HOST:PORT"`` (any Dask address): that cluster. Inside a task
+    (a worker of any executor) always this process: the parallelism is the
+    outer map's, and pools do not nest.
+    """
+    if in_worker():
+        return Executor()
+    if scheduler:
+        return DaskExecutor(None if scheduler == "local" else scheduler, workers)
+    if workers is None or workers <= 1:
+        return Executor()
+    return ProcessExecutor(workers)

@@ -1,0 +1,278 @@
+"""A fitted test on disk and in memory: ArviZ DataTree, ``summary.json``, loader.
+
+Fit folder layout (written by ``cpas-bayes fit``)::
+
+    FIT/
+      posterior.nc     ArviZ DataTree (netCDF4 via h5netcdf), groups:
+                       posterior            every sampled parameter by name
+                                            (e.g. ``D3.s1.n_p``) and the derived
+                                            ``<chute>.s<k>.{n,eps,cds,t_f,t_fp}``,
+                                            dims (chain, draw); coordinate
+                                            ``ensemble`` on chain
+                       sample_stats         lp (log posterior)
+                       log_likelihood       pointwise, on a thinned subset of draws:
+                                            ``total`` (chain, draw, time) — all
+                                            channels at a time bin — plus ``acc``
+                                            and ``lc`` (…, load_cell, time)
+                       posterior_predictive ``acc`` and ``lc`` with noise
+                       observed_data        ``acc`` (time), ``lc`` (load_cell, time)
+                       constant_data        sigmas, bin sizes, time
+      summary.json     the issue-5 schema plus the priors used (``priors``)
+      checkpoint/      emcee HDF5 chains, one per ensemble (resumable)
+
+Values are SI inside the files; ``summary.json`` also carries each
+parachute's ``units`` so reports can convert back.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.core.files import atomic_path, write_json
+from cpas_bayes.stats.priors import prior_from_table
+
+SUMMARY_NAME = "summary.json"
+POSTERIOR_NAME = "posterior.nc"
+QUANTILES = (0.05, 0.5, 0.95)
+STAGE_FIELDS = ("start", "n_p", "n", "expopen", "ck", "tk", "cds", "eps")
+
+
+def stage_key(index, n_stages):
+    """Stage identity shared across tests for pooling: ``first``, ``reefed1``…, ``full_open``."""
+    if index == n_stages - 1:
+        return "full_open"
+    return "first" if index == 0 else f"reefed{index}"
+
+
+def describe_draws(x):
+    """mean, sd and the 5/50/95 % quantiles of a 1-D array of draws."""
+    q = np.quantile(x, QUANTILES)
+    return {"mean": float(np.mean(x)), "sd": float(np.std(x, ddof=1)) if x.size > 1 else 0.0,
+            "q05": float(q[0]), "q50": float(q[1]), "q95": float(q[2])}
+
+
+def save_datatree(tree, target):
+    """Write a DataTree as netCDF atomically."""
+    with atomic_path(target) as tmp:
+        tree.to_netcdf(tmp, engine="h5netcdf")
+
+
+def load_datatree(path):
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "", "posterior file not found", "run 'cpas-bayes fit' into this folder first")
+    return xr.open_datatree(path, engine="h5netcdf").load()
+
+
+@dataclass(frozen=True)
+class FitRecord:
+    """What later steps need of a fit: identity, draws and priors of each parameter."""
+
+    folder: Path
+    summary: dict
+    draws: dict            # parameter name -> 1-D array of posterior draws (chains × draws flattened)
+    priors: dict           # sampled parameter name -> Prior used in the fit
+
+    @property
+    def test(self):
+        return self.summary["test"]
+
+    def parachutes(self):
+        """[(id, kind, inflation, diameter_m, [stage keys])] in fit order."""
+        out = []
+        for pid, info in self.summary["parachutes"].items():
+            out.append((pid, info["kind"], info["inflation"], info["diameter_m"],
+                        [s["key"] for s in info["stages"]]))
+        return out
+
+
+def load_fit(folder) -> FitRecord:
+    """Read a fit folder written by ``cpas-bayes fit``; refuse clearly if it is not one."""
+    folder = Path(folder)
+    summary_path = folder / SUMMARY_NAME
+    if not summary_path.is_file():
+        raise InputError(folder, "", f"no {SUMMARY_NAME}: not a fit folder",
+                         "pass folders written by 'cpas-bayes fit BUNDLE --out FOLDER'")
+    try:
+        summary = json.loads(summary_path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(summary_path, "", f"not valid JSON ({exc})", "rerun the fit to rewrite it") from None
+    for key in ("test", "parachutes", "priors"):
+        if key not in summary:
+            raise InputError(summary_path, f"key '{key}'", "missing", "rerun the fit with this version of cpas_bayes")
+    tree = load_datatree(folder / POSTERIOR_NAME)
+    post = tree["posterior"].to_dataset()
+    draws = {name: np.asarray(post[name].values).reshape(-1) for name in post.data_vars}
+    priors = {name: prior_from_table(table, summary_path, f"priors.{name}") for name, table in summary["priors"].items()}
+    return FitRecord(folder=folder, summary=summary, draws=draws, priors=priors)
+
+
+def write_summary(folder, summary):
+    write_json(Path(folder) / SUMMARY_NAME, summary)
+
+
+# ---------------------------------------------------------------------------
+# assembling a fit
+
+
+def _subset_indices(n_chains, n_draws, budget):
+    """Every k-th draw so that chains × draws stays within ``budget`` samples."""
+    step = max(1, int(np.ceil(n_chains * n_draws / budget)))
+    return np.arange(n_draws - 1, -1, -step)[::-1]
+
+
+def build_datatree(model, sampling, rng, budget=1000):
+    """The ArviZ DataTree of a fit: posterior (+ derived), stats, pointwise log-likelihood,
+    posterior predictive, observed and constant data."""
+    import arviz as az
+
+    chains, lp, ensemble = sampling.stacked()
+    n_chain, n_draw, _ = chains.shape
+    flat = chains.reshape(-1, chains.shape[-1])
+    posterior = {name: chains[:, :, i] for i, name in enumerate(model.names)}
+    derived = model.derived(flat)
+    for name, values in derived.items():
+        if name not in posterior:
+            posterior[name] = values.reshape(n_chain, n_draw)
+
+    obs = model.obs
+    lc_ids = [model.parachutes[i].id for i in obs.lc_index]
+    # One subset of draws serves log_likelihood and posterior_predictive, so that
+    # LOO-PIT lines them up; it is a thinned copy of the posterior's draws.
+    ll_idx = _subset_indices(n_chain, n_draw, budget)
+    sub = chains[:, ll_idx, :].reshape(-1, chains.shape[-1])
+    pred = _predict_in_batches(model, sub)
+    total = model.pointwise_log_likelihood(sub, pred)
+    shape = (n_chain, ll_idx.size)
+    log_likelihood = {"total": total.reshape(shape + total.shape[1:])}
+    if not model.replaces_error_model:   # an AR(1) error model has no per-channel marginal
+        ll_acc, ll_lc = model.pointwise_log_likelihood(sub, pred, by_channel=True)
+        log_likelihood.update(acc=ll_acc.reshape(shape + ll_acc.shape[1:]), lc=ll_lc.reshape(shape + ll_lc.shape[1:]))
+    # Replicated data with the likelihood's error structure: independent parts plus
+    # one shared q̄ draw per bin.
+    shared = rng.standard_normal(pred.acc.shape)
+    acc_pp = pred.acc + pred.noise_acc[:, None] * (obs.acc_sigma * rng.standard_normal(pred.acc.shape)
+                                                   + obs.acc_qbar * shared)
+    lc_pp = pred.lc + pred.noise_lc[:, None, None] * (obs.lc_sigma * rng.standard_normal(pred.lc.shape)
+                                                      + obs.lc_qbar * shared[:, None, :])
+    acc_pp = acc_pp.reshape(shape + acc_pp.shape[1:])
+    lc_pp = lc_pp.reshape(shape + lc_pp.shape[1:])
+
+    coords = {"chain": np.arange(n_chain), "time": obs.time, "load_cell": lc_ids}
+    tree = az.from_dict(
+        {
+            "posterior": posterior,
+            "sample_stats": {"lp": lp},
+            "log_likelihood": log_likelihood,
+            "posterior_predictive": {"acc": acc_pp, "lc": lc_pp},
+            "observed_data": {"acc": obs.acc, "lc": obs.lc},
+            "constant_data": {"acc_sigma": obs.acc_sigma, "lc_sigma": obs.lc_sigma,
+                              "acc_qbar": obs.acc_qbar, "lc_qbar": obs.lc_qbar,
+                              "samples_per_bin": obs.samples_per_bin},
+        },
+        coords=coords,
+        dims={"acc": ["time"], "lc": ["load_cell", "time"], "total": ["time"],
+              "acc_sigma": ["time"], "lc_sigma": ["load_cell", "time"], "acc_qbar": ["time"],
+              "lc_qbar": ["load_cell", "time"], "samples_per_bin": ["time"]},
+        check_conventions=False,
+    )
+    # Draw coordinates name the stored step, so subsets line up with the posterior.
+    for group in ("log_likelihood",):
+        tree[group] = tree[group].to_dataset().assign_coords(draw=ll_idx)
+    tree["posterior_predictive"] = tree["posterior_predictive"].to_dataset().assign_coords(draw=ll_idx)
+    tree["posterior"] = tree["posterior"].to_dataset().assign_coords(ensemble=("chain", ensemble))
+    tree.attrs.update({"test": model.test.name, "model": model.name, "decay": model.decay})
+    return tree
+
+
+def _predict_in_batches(model, theta, batch=256):
+    """Predictions for many rows without holding huge temporaries at once."""
+    parts = [model.predict(theta[i:i + batch]) for i in range(0, theta.shape[0], batch)]
+    first = parts[0]
+    out = type(first)(**{f: np.concatenate([getattr(p, f) for p in parts], axis=0)
+                         if isinstance(getattr(first, f), np.ndarray) else getattr(first, f)
+                         for f in first.__dataclass_fields__})
+    return out
+
+
+def convergence(tree, sampling, rhat_max=1.01, ess_min=400):
+    """R-hat across ensembles (nested R-hat: walkers grouped by ensemble), ESS, τ, acceptance."""
+    import arviz as az
+
+    post = tree["posterior"]
+    names = list(sampling.names)
+    superchains = np.asarray(post["ensemble"].values)
+    if len(set(superchains.tolist())) > 1:
+        rhat = az.rhat_nested(tree, var_names=names, superchain_ids=superchains)
+    else:
+        # One ensemble: no independent chains to compare; walker-chain R-hat is the
+        # best available (optimistic, since walkers share the ensemble's moves).
+        rhat = az.rhat(tree, var_names=names)
+    ess_bulk = az.ess(tree, var_names=names, method="bulk")
+    ess_tail = az.ess(tree, var_names=names, method="tail")
+
+    def values(ds):
+        return {n: float(np.asarray(ds[n].values)) for n in names}
+
+    rhat_v, bulk_v, tail_v = values(rhat), values(ess_bulk), values(ess_tail)
+    tau_max = float(max(np.max(r.tau) for r in sampling.runs))
+    out = {
+        "rhat_max": max(rhat_v.values()),
+        "ess_bulk_min": min(bulk_v.values()),
+        "ess_tail_min": min(tail_v.values()),
+        "tau_max": tau_max,
+        "acceptance": float(np.mean([r.acceptance for r in sampling.runs])),
+        "steps": [int(r.steps) for r in sampling.runs],
+        "ensembles_converged": [bool(r.converged) for r in sampling.runs],
+        "per_parameter": {n: {"rhat": rhat_v[n], "ess_bulk": bulk_v[n], "ess_tail": tail_v[n]} for n in names},
+    }
+    out["converged"] = bool(all(out["ensembles_converged"]) and out["rhat_max"] < rhat_max
+                            and out["ess_bulk_min"] >= ess_min)
+    return out
+
+
+def build_summary(model, tree, diagnostics, options):
+    """``summary.json`` content (issue-5 schema, SI) plus priors and provenance."""
+    from cpas_bayes import __version__
+
+    post = tree["posterior"]
+
+    def stats(name):
+        return describe_draws(np.asarray(post[name].values).reshape(-1)) if name in post else None
+
+    chutes = {}
+    for p in model.parachutes:
+        n = len(p.stages)
+        stages = []
+        for k, st in enumerate(p.stages):
+            entry = {"label": st.label, "key": stage_key(k, n)}
+            for field in STAGE_FIELDS:
+                s = stats(f"{p.id}.s{k + 1}.{field}")
+                if s is not None:
+                    entry[field] = s
+            stages.append(entry)
+        chutes[p.id] = {"kind": p.kind, "inflation": p.inflation, "diameter_m": p.diameter,
+                        "cds_o": stats(f"{p.id}.cds_o"), "stages": stages}
+    nuisance = {prm.name: stats(prm.name) for prm in model.parameters if prm.group != "inflation"}
+    diag = {k: v for k, v in diagnostics.items() if k != "per_parameter"}
+    return {
+        "test": model.test.name,
+        "model": model.name,
+        "decay": model.decay,
+        "units": "SI",
+        "bundle_units": model.test.units.name,
+        "parachutes": chutes,
+        "nuisance": nuisance,
+        "diagnostics": diag,
+        "diagnostics_per_parameter": diagnostics.get("per_parameter", {}),
+        "priors": {prm.name: prm.prior.describe() for prm in model.parameters},
+        "sampler": {"seed": options.seed, "ensembles": options.n_ensembles, "walkers": options.walkers,
+                    "check_every": options.check_every, "max_steps": options.max_steps},
+        "version": __version__,
+    }

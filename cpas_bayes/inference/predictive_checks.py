@@ -1,0 +1,809 @@
+"""Posterior predictive checks and residual diagnostics of a fitted test.
+
+Everything here is computed from ``fit.model`` (its observations and forward
+model) and the posterior draws in ``fit.tree["posterior"]``; nothing is read
+from the stored ``observed_data`` / ``posterior_predictive`` groups, so a check
+can be rerun on a model whose observations were edited (e.g. with
+``dataclasses.replace(model.obs, ...)``). Values are SI.
+
+Replicated data
+---------------
+For a posterior draw θ with prediction ŷ(θ) and error multipliers λ_acc,
+λ_lc, a replicated data set has the likelihood's error structure (model step
+4): an independent part σ_c per channel and a part u_c from the measured q̄,
+shared by all channels of a bin (zero for observations without it)::
+
+    y_rep,c = ŷ_c(θ) + λ_c·(σ_c·z_c + u_c·z_q),     z_c, z_q ~ N(0, 1)
+
+Physical series the statistics are taken on (seed Eq. 6, 10, 11)
+-----------------------------------------------------------------
+* parachute i (load cell): the raw drag area lc_i (Eq. 11 before friction
+  scaling) is scaled with one fixed factor s̄ (posterior median of
+  ``load_scale``), the same for observed and replicated data::
+
+      CDS_i = s̄·(lc_i − w_i) + w_i,      w_i = W_p,i·G/q̄
+      F_i   = q̄·CDS_i − W_p,i·G = s̄·(q̄·lc_i − W_p,i·G)          (Eq. 10–11)
+
+* total (accelerometer): the drag area is the channel itself (Eq. 8 with the
+  stated weights) and the load its Eq. 6 form::
+
+      CDS_total = acc,      F_total = q̄·acc − Σ W_p,i·G = W_V·G − q̄·CDS_V
+
+q̄ and G are the smoothed native series interpolated at the bin times.
+
+Statistics T, per parachute (and total) and stage
+-------------------------------------------------
+A stage interval is [t0, t1): t0 the posterior-median start of the stage, t1
+that of the next stage (the end of the data for the last). For the total, t0
+and t1 are the earliest such starts among the parachutes. Peaks are taken on
+a light smoothing, a quadratic Savitzky–Golay filter over
+:data:`PEAK_SMOOTHING_BINS` bins (0.1 s in the 0.02 s bins of an
+infinite-mass transient), applied identically to observed and replicated
+series; the filter keeps a sharp peak's height and removes most noise.
+
+* ``peak_drag_area``: max of the smoothed drag area in the interval.
+* ``time_to_peak``: time of that maximum minus t0, refined between bins by the
+  vertex of the parabola through the maximum bin and its neighbours.
+* ``stage_mean_drag_area``: mean of the (unsmoothed) drag area over the
+  steady part of the interval, [t0 + t_s, t1) with
+  t_s = min(max(t_settle, ½·(t1 − t0)), ¾·(t1 − t0)) and t_settle the
+  posterior median of t_fp + t_k (the end of the modelled transient).
+* ``fill_time``: first time in the interval the smoothed drag area reaches
+  95 % of the growth from the level held before the stage to its stage
+  mean, minus t0::
+
+      threshold = CDS_before + 0.95·(stage mean − CDS_before)
+
+  with CDS_before the mean smoothed drag area over [t0 − 0.25 s, t0) (0 when
+  there is no bin); the crossing is interpolated linearly between bins.
+  Undefined (NaN) when there is no growth or the threshold is never reached.
+* ``peak_load``: max of the smoothed load series in the interval.
+
+Bayesian p-value: p = P(T(y_rep) ≥ T(y)) over the replicated sets, ties
+counted half, NaN replicates dropped.
+p near 0 means the data show more of T than the model does, near 1 less.
+
+LOO-PIT
+-------
+PIT_i = P(ỹ_i ≤ y_i | y_−i) by Pareto-smoothed importance sampling
+(``arviz.loo_pit``), per channel. Uniform under a calibrated model;
+summarised by the Kolmogorov–Smirnov distance D = sup_u |ECDF(u) − u| with
+its p-value and the mean and sd of the PIT values (uniform: ½ and
+1/√12 ≈ 0.289; a smaller sd means the predictive is too wide, a larger one
+too narrow). Neighbouring bins of a dense time series are correlated, so the
+KS p-value (which assumes independent values) is optimistic: read D against
+the simultaneous 95 % band ε = √(ln(2/0.05)/(2n)) (DKW inequality) as a
+guide, not a test.
+
+Residuals
+---------
+Standardised residual of bin j, channel c at the posterior mean prediction::
+
+    r_j = (y_j − E[ŷ_j]) / (λ̄_c·√(σ_j² + u_j²))
+
+with E[ŷ] the mean of the prediction over the draws, λ̄_c the posterior mean
+of the channel's error multiplier and √(σ² + u²) the channel's marginal
+1-sigma. Under the model r ~ N(0, 1), independent from bin to bin. Each bin is
+put in a flight phase from the posterior medians of start, t_fp and t_k
+(:func:`classify_phases`). Per channel × phase: n, mean, sd, lag-1
+autocorrelation and the Ljung–Box statistic (:func:`ljung_box`). Lags count
+bins (0.02–0.1 s apart); pairs (j, j + k) count only when both bins are in
+the phase.
+
+PSIS-LOO uses the joint log-likelihood of all channels of a bin (``total``);
+LOO-PIT needs one per channel and uses each channel's marginal density.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+from scipy.signal import savgol_filter
+
+from cpas_bayes.core.files import jsonable
+
+PEAK_SMOOTHING_BINS = 5          # quadratic Savitzky–Golay window, bins
+FILL_FRACTION = 0.95             # fill time: reach this fraction of the growth to the stage mean
+BEFORE_WINDOW = 0.25             # s before a stage start that give the held level
+LJUNG_BOX_LAGS = 10              # Ljung–Box lags (fewer when a phase is short: n // 4)
+PARETO_K_LIMIT = 0.7             # PSIS-LOO: importance sampling unreliable above this
+PIT_BAND_ALPHA = 0.05            # DKW band of the LOO-PIT ECDF
+CHECK_DRAW_BUDGET = 2000         # posterior draws used for LOO-PIT / PSIS-LOO / residuals
+
+STATISTICS = ("peak_drag_area", "time_to_peak", "fill_time", "stage_mean_drag_area", "peak_load")
+STATISTIC_UNITS = {"peak_drag_area": "area", "time_to_peak": "time", "fill_time": "time",
+                   "stage_mean_drag_area": "area", "peak_load": "force"}
+SI_LABELS = {"area": "m²", "time": "s", "force": "N"}
+
+PHASES = ("pre_deploy", "fill", "overinflation", "steady", "full_open")
+# A bin of a cluster channel takes the most dynamic phase of its parachutes.
+_CLUSTER_PRIORITY = {"fill": 4, "overinflation": 3, "steady": 2, "full_open": 1, "pre_deploy": 0}
+
+TOTAL = "total"
+ACC_CHANNEL = "accelerometer"
+
+
+# ---------------------------------------------------------------------------
+# posterior draws and predictions
+
+
+def posterior_matrix(tree, names):
+    """Posterior draws of ``names`` as (chain, draw, D) from a DataTree's posterior group."""
+    post = tree["posterior"]
+    return np.stack([np.asarray(post[n].values, float) for n in names], axis=-1)
+
+
+def posterior_median(tree, name, default=np.nan):
+    """Median over all posterior draws of one variable; ``default`` if the tree lacks it."""
+    post = tree["posterior"]
+    if name not in post:
+        return default
+    return float(np.median(np.asarray(post[name].values)))
+
+
+def predict_draws(model, theta, batch=256, log_likelihood=False):
+    """Model predictions in batches: {acc (S, N), lc (S, L, N), cds (S, P, N), noise_acc, noise_lc (S,)}.
+
+    With ``log_likelihood`` also the pointwise log-likelihood: ``ll_total`` (S, N), all
+    channels of a bin jointly, and, when the model gives them, each channel's marginal
+    ``ll_acc`` (S, N) and ``ll_lc`` (S, L, N).
+    """
+    fields = ("acc", "lc", "cds", "noise_acc", "noise_lc")
+    parts = {name: [] for name in fields + ("ll_total", "ll_acc", "ll_lc")}
+    split = True
+    for i in range(0, theta.shape[0], batch):
+        rows = theta[i:i + batch]
+        pred = model.predict(rows)
+        for name in fields:
+            parts[name].append(np.asarray(getattr(pred, name), float))
+        if not log_likelihood:
+            continue
+        parts["ll_total"].append(model.pointwise_log_likelihood(rows, pred))
+        if model.replaces_error_model:  # an extension's likelihood (e.g. AR(1)) gives the total per bin only
+            split = False
+            continue
+        ll_acc, ll_lc = model.pointwise_log_likelihood(rows, pred, by_channel=True)
+        parts["ll_acc"].append(ll_acc)
+        parts["ll_lc"].append(ll_lc)
+    out = {name: np.concatenate(parts[name], axis=0) for name in fields}
+    if log_likelihood:
+        out["ll_total"] = np.concatenate(parts["ll_total"], axis=0)
+        if split:
+            out["ll_acc"] = np.concatenate(parts["ll_acc"], axis=0)
+            out["ll_lc"] = np.concatenate(parts["ll_lc"], axis=0)
+    return out
+
+
+def _shared_qbar_parts(obs):
+    """The q̄ part of each channel's 1-sigma shared within a bin: (acc (N,), lc (L, N)); zeros if absent."""
+    acc_q = getattr(obs, "acc_qbar", None)
+    lc_q = getattr(obs, "lc_qbar", None)
+    return (np.zeros_like(obs.acc_sigma) if acc_q is None else np.asarray(acc_q, float),
+            np.zeros_like(obs.lc_sigma) if lc_q is None else np.asarray(lc_q, float))
+
+
+def channel_sigma(obs):
+    """Marginal 1-sigma of each channel before the error multiplier: √(σ² + u²), (acc (N,), lc (L, N))."""
+    acc_q, lc_q = _shared_qbar_parts(obs)
+    return np.hypot(obs.acc_sigma, acc_q), np.hypot(obs.lc_sigma, lc_q)
+
+
+def _replicate(model, pred, rng):
+    """Posterior-predictive data with the likelihood's error structure.
+
+    y_rep,c = ŷ_c + λ_c·(σ_c·z_c + u_c·z_q): independent parts z_c per channel and bin,
+    one shared q̄ draw z_q per bin (u = 0 for observations without a shared part).
+    """
+    obs = model.obs
+    acc_q, lc_q = _shared_qbar_parts(obs)
+    shared = rng.standard_normal(pred["acc"].shape)
+    acc = pred["acc"] + pred["noise_acc"][:, None] * (obs.acc_sigma * rng.standard_normal(pred["acc"].shape)
+                                                      + acc_q * shared)
+    lc = pred["lc"] + pred["noise_lc"][:, None, None] * (obs.lc_sigma * rng.standard_normal(pred["lc"].shape)
+                                                         + lc_q * shared[:, None, :])
+    return acc, lc
+
+
+def _rng(rng):
+    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+
+# ---------------------------------------------------------------------------
+# stage geometry from the posterior
+
+
+@dataclass(frozen=True)
+class StageWindow:
+    """One stage of one series: interval [t0, t1), steady part from ``t_steady``."""
+
+    series: str          # parachute id or "total"
+    stage: int           # 1-based
+    label: str
+    t0: float
+    t1: float
+    t_steady: float
+
+
+def stage_windows(fit):
+    """Posterior-median stage windows of each parachute with a load cell and of the total.
+
+    The steady part starts t_s = min(max(t_settle, ½·L), ¾·L) after t0, L = t1 − t0,
+    t_settle = median(t_fp) + median(t_k) (t_k = 0 for finite mass).
+    """
+    model, tree = fit.model, fit.tree
+    t_end = float(model.obs.time[-1]) + 1e-9
+    starts, settles = {}, {}
+    for p in model.parachutes:
+        starts[p.id] = [posterior_median(tree, f"{p.id}.s{k + 1}.start") for k in range(len(p.stages))]
+        settles[p.id] = [posterior_median(tree, f"{p.id}.s{k + 1}.t_fp", 0.0)
+                         + posterior_median(tree, f"{p.id}.s{k + 1}.tk", 0.0) for k in range(len(p.stages))]
+
+    def window(series, k, label, t0, t1, settle):
+        length = t1 - t0
+        t_s = min(max(settle, 0.5 * length), 0.75 * length)
+        return StageWindow(series, k + 1, label, t0, t1, t0 + t_s)
+
+    out = []
+    lc_chutes = {int(i) for i in model.obs.lc_index}
+    for i, p in enumerate(model.parachutes):
+        if i not in lc_chutes:
+            continue
+        s = starts[p.id] + [t_end]
+        for k, st in enumerate(p.stages):
+            out.append(window(p.id, k, st.label, s[k], s[k + 1], settles[p.id][k]))
+    for k in range(model.n_stages):
+        having = [p for p in model.parachutes if len(p.stages) > k]
+        t0 = min(starts[p.id][k] for p in having)
+        nxt = [starts[p.id][k + 1] for p in model.parachutes if len(p.stages) > k + 1]
+        t1 = min(nxt) if nxt else t_end
+        settle = max(starts[p.id][k] + settles[p.id][k] for p in having) - t0
+        out.append(window(TOTAL, k, having[0].stages[k].label, t0, t1, settle))
+    return out
+
+
+# ---------------------------------------------------------------------------
+# physical series
+
+
+def smooth_for_peaks(values):
+    """The peak smoothing: quadratic Savitzky–Golay over PEAK_SMOOTHING_BINS bins along the last axis."""
+    values = np.asarray(values, float)
+    if values.shape[-1] < PEAK_SMOOTHING_BINS:
+        return values.copy()
+    return savgol_filter(values, PEAK_SMOOTHING_BINS, 2, axis=-1, mode="interp")
+
+
+def physical_series(model, acc, lc, load_scale):
+    """Drag areas and loads of each series from channel arrays (rows of data sets).
+
+    ``acc`` (M, N), ``lc`` (M, L, N); returns {series: (drag area (M, N), load (M, N))}
+    with the formulas of the module docstring (fixed scale ``load_scale``).
+    """
+    obs = model.obs
+    qbar = obs.qbar_at(obs.time)
+    g = obs.g_at(obs.time)
+    out = {}
+    for row, chute in enumerate(obs.lc_index):
+        p = model.parachutes[int(chute)]
+        w = p.weight * g / qbar
+        raw = lc[:, row, :]
+        out[p.id] = (load_scale * (raw - w) + w, load_scale * (qbar * raw - p.weight * g))
+    out[TOTAL] = (acc, qbar * acc - model.chute_weight.sum() * g)
+    return out
+
+
+def _masked_max(values, mask):
+    """Max and argmax (index into the full axis) of each row over the columns in ``mask``."""
+    idx = np.flatnonzero(mask)
+    sub = values[:, idx]
+    j = np.argmax(sub, axis=1)
+    return sub[np.arange(sub.shape[0]), j], idx[j]
+
+
+def _vertex_time(time, values, at, mask):
+    """Time of the maximum refined by the parabola through the bins at−1, at, at+1 (rows of ``values``).
+
+    Vertex of the parabola through (t_a, y_a), (t_b, y_b), (t_c, y_c)::
+
+        t* = t_b − ½·[(t_b − t_a)²·(y_b − y_c) − (t_b − t_c)²·(y_b − y_a)]
+                   / [(t_b − t_a)·(y_b − y_c) − (t_b − t_c)·(y_b − y_a)]
+
+    kept within [t_a, t_c]; the bin time itself where a neighbour is outside the mask.
+    """
+    n = time.size
+    rows = np.arange(values.shape[0])
+    a, c = np.clip(at - 1, 0, n - 1), np.clip(at + 1, 0, n - 1)
+    inside = (at > 0) & (at < n - 1) & mask[a] & mask[c]
+    ta, tb, tc = time[a], time[at], time[c]
+    ya, yb, yc = values[rows, a], values[rows, at], values[rows, c]
+    num = (tb - ta) ** 2 * (yb - yc) - (tb - tc) ** 2 * (yb - ya)
+    den = (tb - ta) * (yb - yc) - (tb - tc) * (yb - ya)
+    ok = inside & (np.abs(den) > 0)
+    vertex = tb - 0.5 * num / np.where(ok, den, 1.0)
+    return np.where(ok, np.clip(vertex, ta, tc), tb)
+
+
+def _first_crossing(time, values, threshold, mask):
+    """First time each row of ``values`` reaches ``threshold`` inside ``mask``, linear between bins.
+
+    NaN where it never does. The crossing between bins j−1 and j (both in the mask) is
+    t = t_{j−1} + (thr − y_{j−1})/(y_j − y_{j−1})·(t_j − t_{j−1}); the bin time if j is the
+    first bin of the mask.
+    """
+    idx = np.flatnonzero(mask)
+    sub = values[:, idx]
+    reached = sub >= threshold[:, None]
+    first = np.argmax(reached, axis=1)
+    rows = np.arange(values.shape[0])
+    j = idx[first]
+    prev = np.maximum(first - 1, 0)
+    has_prev = first > 0
+    y0, y1 = sub[rows, prev], sub[rows, first]
+    t0, t1 = time[idx[prev]], time[j]
+    frac = np.where(has_prev & (y1 > y0), (threshold - y0) / np.where(y1 > y0, y1 - y0, 1.0), 1.0)
+    t = np.where(has_prev, t0 + np.clip(frac, 0.0, 1.0) * (t1 - t0), t1)
+    return np.where(reached.any(axis=1), t, np.nan)
+
+
+def stage_statistics(time, cds, load, window):
+    """The five statistics of one stage window for every row of ``cds``/``load`` (M, N).
+
+    Returns {statistic: (M,)}; definitions in the module docstring. Times are
+    refined between bins (parabolic vertex for the peak, linear crossing for the
+    fill), so they are not tied to the 0.02–0.1 s bin grid.
+    """
+    in_stage = (time >= window.t0) & (time < window.t1)
+    if not in_stage.any():
+        nan = np.full(cds.shape[0], np.nan)
+        return {name: nan for name in STATISTICS}
+    smooth_cds = smooth_for_peaks(cds)
+    smooth_load = smooth_for_peaks(load)
+    peak, at = _masked_max(smooth_cds, in_stage)
+    peak_load, _ = _masked_max(smooth_load, in_stage)
+    t_peak = _vertex_time(time, smooth_cds, at, in_stage)
+
+    steady = in_stage & (time >= window.t_steady)
+    stage_mean = cds[:, steady].mean(axis=1)
+
+    before = (time >= window.t0 - BEFORE_WINDOW) & (time < window.t0)
+    held = smooth_cds[:, before].mean(axis=1) if before.any() else np.zeros(cds.shape[0])
+    growth = stage_mean - held
+    threshold = held + FILL_FRACTION * growth
+    fill = np.where(growth > 0, _first_crossing(time, smooth_cds, threshold, in_stage) - window.t0, np.nan)
+    return {"peak_drag_area": peak, "time_to_peak": t_peak - window.t0, "fill_time": fill,
+            "stage_mean_drag_area": stage_mean, "peak_load": peak_load}
+
+
+def bayesian_p_value(replicated, observed):
+    """P(T_rep ≥ T_obs) with ties counted half; NaN replicates dropped (NaN if none or T_obs NaN)."""
+    rep = np.asarray(replicated, float)
+    rep = rep[np.isfinite(rep)]
+    if rep.size == 0 or not np.isfinite(observed):
+        return float("nan")
+    return float(np.mean(rep > observed) + 0.5 * np.mean(rep == observed))
+
+
+# ---------------------------------------------------------------------------
+# posterior predictive statistics
+
+
+@dataclass
+class PPCResult:
+    """Table of the statistics and, row by row, the replicated values behind it."""
+
+    table: pd.DataFrame
+    replicated: np.ndarray        # (rows, S), aligned with ``table``
+    windows: list
+
+
+def ppc_check(fit, n_draws=200, rng=None) -> PPCResult:
+    """Posterior predictive statistics with the replicated values (see :func:`ppc_statistics`)."""
+    rng = _rng(rng)
+    model, tree = fit.model, fit.tree
+    draws = posterior_matrix(tree, model.names).reshape(-1, model.ndim)
+    pick = rng.choice(draws.shape[0], size=min(n_draws, draws.shape[0]), replace=False)
+    pred = predict_draws(model, draws[pick])
+    acc_rep, lc_rep = _replicate(model, pred, rng)
+    obs = model.obs
+    # Row 0 is the observed data set, rows 1.. the replicated ones.
+    acc = np.concatenate([obs.acc[None], acc_rep], axis=0)
+    lc = np.concatenate([obs.lc[None], lc_rep], axis=0)
+    load_scale = posterior_median(tree, "load_scale", 1.0)
+    series = physical_series(model, acc, lc, load_scale)
+    windows = stage_windows(fit)
+    rows, replicated = [], []
+    for w in windows:
+        cds, load = series[w.series]
+        values = stage_statistics(obs.time, cds, load, w)
+        for name in STATISTICS:
+            v = values[name]
+            rep = v[1:]
+            finite = rep[np.isfinite(rep)]
+            q05, q95 = np.quantile(finite, (0.05, 0.95)) if finite.size else (np.nan, np.nan)
+            rows.append({"parachute": w.series, "stage": w.stage, "stage_label": w.label, "statistic": name,
+                         "unit": SI_LABELS[STATISTIC_UNITS[name]], "observed": float(v[0]),
+                         "replicated_mean": float(finite.mean()) if finite.size else np.nan,
+                         "replicated_q05": float(q05), "replicated_q95": float(q95),
+                         "n_replicated": int(finite.size), "p_value": bayesian_p_value(rep, v[0])})
+            replicated.append(rep)
+    table = pd.DataFrame(rows)
+    return PPCResult(table=table, replicated=np.array(replicated), windows=windows)
+
+
+def ppc_statistics(fit, n_draws=200, rng=None) -> pd.DataFrame:
+    """Posterior predictive check of the physical statistics, one row per series × stage × statistic.
+
+    Columns: parachute (id or "total"), stage (1-based), stage_label, statistic, unit (SI),
+    observed, replicated_mean, replicated_q05, replicated_q95, n_replicated, p_value
+    (P(T_rep ≥ T_obs), ties half). ``n_draws`` posterior draws, each with one noise
+    realisation; definitions in the module docstring.
+    """
+    return ppc_check(fit, n_draws, rng).table
+
+
+# ---------------------------------------------------------------------------
+# check tree: posterior subset with matching log-likelihood and predictive
+
+
+def _subset_draws(n_chain, draw_coords, budget):
+    """Every k-th stored draw (counting from the last) so that chains × draws ≤ ``budget``."""
+    step = max(1, int(math.ceil(n_chain * draw_coords.size / budget)))
+    return draw_coords[::-1][::step][::-1]
+
+
+def check_tree(fit, budget=CHECK_DRAW_BUDGET, rng=None):
+    """DataTree for PSIS-LOO and LOO-PIT, every group on the same draws.
+
+    posterior (subset of draws), log_likelihood ``total`` (time), ``acc`` (time),
+    ``lc`` (load_cell, time), posterior_predictive ``acc``/``lc`` (one replicate per
+    draw) and observed_data ``acc``/``lc``, all recomputed from ``fit.model``.
+    Also carries the mean prediction in constant_data (``acc_mean``, ``lc_mean``).
+    """
+    import arviz as az
+
+    rng = _rng(rng)
+    model, tree = fit.model, fit.tree
+    post = tree["posterior"].to_dataset()
+    draws = _subset_draws(post.sizes["chain"], np.asarray(post["draw"].values), budget)
+    post = post.sel(draw=draws)
+    theta = np.stack([np.asarray(post[n].values, float) for n in model.names], axis=-1)
+    n_chain, n_draw = theta.shape[:2]
+    flat = theta.reshape(-1, model.ndim)
+    pred = predict_draws(model, flat, log_likelihood=True)
+    acc_rep, lc_rep = _replicate(model, pred, rng)
+    obs = model.obs
+    shape = (n_chain, n_draw)
+    lc_ids = [model.parachutes[int(i)].id for i in obs.lc_index]
+    channels = ("acc", "lc") if lc_ids else ("acc",)
+    replicated = {"acc": acc_rep, "lc": lc_rep}
+    out = az.from_dict(
+        {
+            "posterior": {n: post[n].values for n in model.names},
+            "log_likelihood": {name[3:]: pred[name].reshape(shape + pred[name].shape[1:])
+                               for name in ("ll_total", "ll_acc", "ll_lc")
+                               if name in pred and name[3:] in ("total",) + channels},
+            "posterior_predictive": {c: replicated[c].reshape(shape + replicated[c].shape[1:]) for c in channels},
+            "observed_data": {c: getattr(obs, c) for c in channels},
+            "constant_data": {"acc_mean": pred["acc"].mean(axis=0), "lc_mean": pred["lc"].mean(axis=0)},
+        },
+        coords={"chain": np.asarray(post["chain"].values), "draw": draws, "time": obs.time,
+                "load_cell": lc_ids},
+        dims={"acc": ["time"], "lc": ["load_cell", "time"], "total": ["time"],
+              "acc_mean": ["time"], "lc_mean": ["load_cell", "time"]},
+        check_conventions=False,
+    )
+    return out
+
+
+# ---------------------------------------------------------------------------
+# LOO-PIT
+
+
+def ks_uniform(values):
+    """KS distance of values in [0, 1] from the uniform, its p-value, and the DKW 95 % band half-width."""
+    u = np.sort(np.asarray(values, float).ravel())
+    n = u.size
+    res = stats.kstest(u, "uniform")
+    band = math.sqrt(math.log(2.0 / PIT_BAND_ALPHA) / (2.0 * n))
+    return float(res.statistic), float(res.pvalue), band
+
+
+@dataclass
+class LooPitResult:
+    """LOO-PIT values per channel (each (N,)) and their uniformity summary table."""
+
+    values: dict
+    table: pd.DataFrame
+    time: np.ndarray
+
+
+def loo_pit(fit, tree=None) -> LooPitResult:
+    """LOO-PIT per channel (``accelerometer``, ``load cell <id>``) by ``arviz.loo_pit``.
+
+    Table columns: channel, n, ks_distance, ks_p_value (optimistic: correlated
+    bins), dkw_band (95 % simultaneous half-width), pit_mean, pit_sd,
+    frac_outside_90 (share of PIT values outside [0.05, 0.95], 0.10 if calibrated).
+    """
+    import arviz as az
+
+    tree = check_tree(fit) if tree is None else tree
+    if "acc" not in tree["log_likelihood"]:
+        raise ValueError("LOO-PIT needs the log-likelihood per channel; this model's likelihood "
+                         "(an extension's) gives only the total per time bin")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
+        pit = az.loo_pit(tree, var_names=[c for c in ("acc", "lc") if c in tree["observed_data"]])
+    # The PSIS-weighted sums can overshoot [0, 1] by round-off; a PIT is a probability.
+    values = {ACC_CHANNEL: np.clip(np.asarray(pit["acc"].values, float), 0.0, 1.0)}
+    if "lc" in pit:
+        lc = np.clip(np.asarray(pit["lc"].values, float), 0.0, 1.0)
+        for row, cid in enumerate(pit["lc"]["load_cell"].values):
+            values[f"load cell {cid}"] = lc[row]
+    rows = []
+    for channel, u in values.items():
+        d, p, band = ks_uniform(u)
+        rows.append({"channel": channel, "n": int(u.size), "ks_distance": d, "ks_p_value": p, "dkw_band": band,
+                     "pit_mean": float(u.mean()), "pit_sd": float(u.std(ddof=1)),
+                     "frac_outside_90": float(np.mean((u < 0.05) | (u > 0.95)))})
+    return LooPitResult(values=values, table=pd.DataFrame(rows), time=np.asarray(fit.model.obs.time))
+
+
+# ---------------------------------------------------------------------------
+# residual phases and serial correlation
+
+
+def classify_phases(time, starts, t_fp, t_k, infinite=True):
+    """Flight phase of each bin for one parachute: array of labels from :data:`PHASES`.
+
+    ``starts``, ``t_fp``, ``t_k`` (K,) per stage in time order. With s_k the
+    start of stage k and s_K = ∞:
+
+    * ``pre_deploy``      t < s_1
+    * ``fill``            s_k ≤ t < s_k + t_fp,k
+    * ``overinflation``   s_k + t_fp,k ≤ t < s_k + t_fp,k + t_k,k   (infinite mass only)
+    * ``steady``          later in a reefed stage (k < K)
+    * ``full_open``       later in the last stage
+
+    each phase cut at s_{k+1}.
+    """
+    time = np.asarray(time, float)
+    starts = np.asarray(starts, float)
+    t_fp = np.asarray(t_fp, float)
+    t_k = np.asarray(t_k, float) if infinite else np.zeros_like(starts)
+    label = np.full(time.shape, "pre_deploy", dtype=object)
+    n_stages = starts.size
+    for k in range(n_stages):
+        end = starts[k + 1] if k + 1 < n_stages else np.inf
+        in_stage = (time >= starts[k]) & (time < end)
+        tau = time - starts[k]
+        label[in_stage] = "full_open" if k == n_stages - 1 else "steady"
+        label[in_stage & (tau < t_fp[k] + t_k[k])] = "overinflation"
+        label[in_stage & (tau < t_fp[k])] = "fill"
+    return label
+
+
+def cluster_phases(labels):
+    """Phase of a channel that sees several parachutes (rows of ``labels``): the most dynamic one.
+
+    Priority fill > overinflation > steady > full_open > pre_deploy: a bin is
+    ``full_open`` only when every parachute is steady full open, ``pre_deploy``
+    only before every first start.
+    """
+    labels = np.atleast_2d(np.asarray(labels, dtype=object))
+    rank = np.zeros(labels.shape, dtype=int)
+    for name, r in _CLUSTER_PRIORITY.items():
+        rank[labels == name] = r
+    by_rank = np.empty(len(_CLUSTER_PRIORITY), dtype=object)
+    for name, r in _CLUSTER_PRIORITY.items():
+        by_rank[r] = name
+    return by_rank[rank.max(axis=0)]
+
+
+def autocorrelation(x, max_lag, mask=None):
+    """Sample autocorrelation r_1..r_max_lag of ``x`` restricted to ``mask``.
+
+    r_k = Σ_{j: j, j+k ∈ mask} (x_j − x̄)(x_{j+k} − x̄) / Σ_{j ∈ mask} (x_j − x̄)²,
+    x̄ the mean over the mask; for a full mask the usual estimator.
+    """
+    x = np.asarray(x, float)
+    mask = np.ones(x.size, bool) if mask is None else np.asarray(mask, bool)
+    n = int(mask.sum())
+    out = np.full(max_lag, np.nan)
+    if n < 2:
+        return out
+    d = np.where(mask, x - x[mask].mean(), 0.0)
+    denom = np.sum(d**2)
+    if denom <= 0:
+        return out
+    for k in range(1, min(max_lag, x.size - 1) + 1):
+        out[k - 1] = np.sum(d[:-k] * d[k:]) / denom  # zero outside the mask: only in-mask pairs count
+    return out
+
+
+def ljung_box(x, lags=LJUNG_BOX_LAGS, mask=None):
+    """Ljung–Box portmanteau statistic and p-value for serial correlation.
+
+    Q = n·(n + 2)·Σ_{k=1}^{h} r_k² / (n − k),  p = P(χ²_h ≥ Q)
+
+    with r_k from :func:`autocorrelation`, n the number of values in the mask.
+    Returns (Q, p, h); NaNs when h < 1.
+    """
+    x = np.asarray(x, float)
+    n = int(x.size if mask is None else np.asarray(mask, bool).sum())
+    h = int(min(lags, n - 1))
+    if h < 1:
+        return float("nan"), float("nan"), 0
+    r = autocorrelation(x, h, mask)
+    k = np.arange(1, h + 1)
+    q = float(n * (n + 2) * np.sum(r**2 / (n - k)))
+    return q, float(stats.chi2.sf(q, h)), h
+
+
+@dataclass
+class ResidualReport:
+    """Standardised residuals per channel, their phase table, Pareto-k flags and error multipliers."""
+
+    time: np.ndarray
+    residuals: dict          # channel -> (N,)
+    phases: dict             # channel -> (N,) phase labels
+    table: pd.DataFrame      # channel × phase statistics
+    pareto_k: np.ndarray     # (N,) PSIS-LOO Pareto k of the bins (all channels of a bin)
+    high_pareto_k: pd.DataFrame
+    noise: dict              # error multiplier -> {mean, q05, q95}
+    elpd_loo: dict
+
+    def overall(self, channel):
+        """The channel's whole-record row of :attr:`table` (phase ``all``)."""
+        t = self.table
+        return t[(t["channel"] == channel) & (t["phase"] == "all")].iloc[0]
+
+
+def stage_timing_medians(fit):
+    """Posterior medians per parachute: (starts (K,), t_fp (K,), t_k (K,), infinite)."""
+    tree = fit.tree
+    out = {}
+    for p in fit.model.parachutes:
+        ks = range(1, len(p.stages) + 1)
+        out[p.id] = (np.array([posterior_median(tree, f"{p.id}.s{k}.start") for k in ks]),
+                     np.array([posterior_median(tree, f"{p.id}.s{k}.t_fp", 0.0) for k in ks]),
+                     np.array([posterior_median(tree, f"{p.id}.s{k}.tk", 0.0) for k in ks]),
+                     p.inflation == "infinite")
+    return out
+
+
+def channel_phases(fit):
+    """Phase labels per channel: each load cell by its parachute, the accelerometer by the cluster."""
+    obs = fit.model.obs
+    timing = stage_timing_medians(fit)
+    per_chute = {pid: classify_phases(obs.time, *t[:3], infinite=t[3]) for pid, t in timing.items()}
+    out = {ACC_CHANNEL: cluster_phases(np.array(list(per_chute.values())))}
+    for chute in obs.lc_index:
+        pid = fit.model.parachutes[int(chute)].id
+        out[f"load cell {pid}"] = per_chute[pid]
+    return out
+
+
+def _phase_rows(channel, r, phase):
+    rows = []
+    for name in ("all",) + PHASES:
+        mask = np.ones(r.size, bool) if name == "all" else (phase == name)
+        n = int(mask.sum())
+        if n == 0:
+            continue
+        vals = r[mask]
+        acf1 = autocorrelation(r, 1, mask)[0] if n > 2 else np.nan
+        q, p, h = ljung_box(r, min(LJUNG_BOX_LAGS, n // 4), mask)
+        rows.append({"channel": channel, "phase": name, "n": n, "mean": float(vals.mean()),
+                     "sd": float(vals.std(ddof=1)) if n > 1 else np.nan, "acf1": float(acf1),
+                     "ljung_box_q": q, "ljung_box_lags": h, "ljung_box_p": p})
+    return rows
+
+
+def _describe(x):
+    x = np.asarray(x, float).ravel()
+    q05, q95 = np.quantile(x, (0.05, 0.95))
+    return {"mean": float(x.mean()), "q05": float(q05), "q95": float(q95)}
+
+
+def residuals(fit, tree=None) -> ResidualReport:
+    """Standardised residuals r = (y − E[ŷ])/(λ̄·√(σ² + u²)) per channel, tested per flight phase.
+
+    E[ŷ] is the mean prediction over the check draws (:func:`check_tree`), λ̄ the
+    posterior mean error multiplier. The table has, per channel × phase (and
+    ``all``): n, mean, sd, acf1 (lag-1 autocorrelation), ljung_box_q/_lags/_p
+    (h = min(10, n // 4) lags). ``pareto_k`` is PSIS-LOO's k per time bin from
+    ``arviz.loo(tree, var_name="total", pointwise=True)``; bins above 0.7 are
+    listed in ``high_pareto_k`` with the accelerometer's phase there.
+    """
+    import arviz as az
+
+    tree = check_tree(fit) if tree is None else tree
+    model, obs = fit.model, fit.model.obs
+    post = fit.tree["posterior"]
+    lam_acc = float(np.mean(post["noise_acc"].values))
+    lam_lc = float(np.mean(post["noise_lc"].values)) if "noise_lc" in post else 1.0
+    const = tree["constant_data"]
+    acc_mean = np.asarray(const["acc_mean"].values)
+    lc_mean = np.asarray(const["lc_mean"].values).reshape(obs.lc.shape)
+    sig_acc, sig_lc = channel_sigma(obs)
+    res = {ACC_CHANNEL: (obs.acc - acc_mean) / (lam_acc * sig_acc)}
+    for row, chute in enumerate(obs.lc_index):
+        res[f"load cell {model.parachutes[int(chute)].id}"] = (obs.lc[row] - lc_mean[row]) / (lam_lc * sig_lc[row])
+    phases = channel_phases(fit)
+    rows = []
+    for channel, r in res.items():
+        rows.extend(_phase_rows(channel, r, phases[channel]))
+
+    with warnings.catch_warnings():
+        # High Pareto k is reported below, bin by bin; arviz's generic warning adds nothing.
+        warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
+        loo = az.loo(tree, var_name="total", pointwise=True)
+    k = np.asarray(loo.pareto_k.values, float)
+    high = np.flatnonzero(k > PARETO_K_LIMIT)
+    high_table = pd.DataFrame({"time": obs.time[high], "pareto_k": k[high],
+                               "phase": phases[ACC_CHANNEL][high].astype(str)})
+    noise = {"noise_acc": _describe(post["noise_acc"].values)}
+    if "noise_lc" in post:
+        noise["noise_lc"] = _describe(post["noise_lc"].values)
+    elpd = {"elpd_loo": float(loo.elpd), "se": float(loo.se), "p_loo": float(loo.p),
+            "n_high_pareto_k": int(high.size), "pareto_k_max": float(np.max(k))}
+    return ResidualReport(time=np.asarray(obs.time), residuals=res, phases=phases, table=pd.DataFrame(rows),
+                          pareto_k=k, high_pareto_k=high_table, noise=noise, elpd_loo=elpd)
+
+
+# ---------------------------------------------------------------------------
+# report
+
+
+@dataclass
+class FitChecks:
+    """All checks of one fit (what :func:`run_checks` computes, :func:`check_report` serialises)."""
+
+    ppc: PPCResult
+    loo_pit: LooPitResult
+    residuals: ResidualReport
+
+
+def run_checks(fit, n_draws=200, rng=None) -> FitChecks:
+    """PPC statistics, LOO-PIT and residuals sharing one :func:`check_tree`."""
+    rng = _rng(rng if rng is not None else 0)
+    tree = check_tree(fit, rng=rng)
+    return FitChecks(ppc=ppc_check(fit, n_draws, rng), loo_pit=loo_pit(fit, tree), residuals=residuals(fit, tree))
+
+
+def check_report(fit, n_draws=200, rng=None, checks=None) -> dict:
+    """The checks as a JSON-serialisable dict (SI; NaN written as null).
+
+    Keys: ``ppc`` (rows of :func:`ppc_statistics`), ``ppc_flags`` (rows with
+    p < 0.01 or p > 0.99), ``loo_pit`` (uniformity per channel), ``residuals``
+    (channel × phase rows), ``pareto_k`` (elpd_loo, se, p_loo, count and bins
+    above 0.7), ``noise`` (error multipliers), ``definitions``.
+    """
+    checks = run_checks(fit, n_draws, rng) if checks is None else checks
+    ppc = checks.ppc.table
+    flags = ppc[(ppc["p_value"] < 0.01) | (ppc["p_value"] > 0.99)]
+    res = checks.residuals
+    report = {
+        "ppc": ppc,
+        "ppc_flags": flags,
+        "loo_pit": checks.loo_pit.table,
+        "residuals": res.table,
+        "pareto_k": {**res.elpd_loo, "limit": PARETO_K_LIMIT, "high": res.high_pareto_k},
+        "noise": res.noise,
+        "definitions": {
+            "units": "SI",
+            "p_value": "P(T(y_rep) >= T(y)), ties counted half",
+            "peak_smoothing": f"quadratic Savitzky-Golay over {PEAK_SMOOTHING_BINS} bins",
+            "fill_time": f"first reach of held + {FILL_FRACTION}*(stage mean - held), from the stage start",
+            "stage_window": "posterior-median starts; steady part from t0 + min(max(t_fp + t_k, L/2), 3L/4)",
+            "load_scale": "posterior median applied to observed and replicated load cells alike",
+            "residual": "(y - E[y_hat]) / (mean lambda * sqrt(sigma^2 + u_qbar^2))",
+            "ljung_box_lags": f"min({LJUNG_BOX_LAGS}, n // 4)",
+        },
+    }
+    return jsonable(report)

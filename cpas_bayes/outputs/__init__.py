@@ -1,0 +1,3 @@
+"""What a person reads: figures (the only place matplotlib is imported), file writers of every step's
+results, and the campaign report.
+"""

@@ -1,0 +1,527 @@
+"""Figures of a fitted test: posterior bands over the data, loads, corners, traces and checks.
+
+:func:`write_fit_figures` writes, in the bundle's units:
+
+* ``bands.png`` — each parachute's load-cell drag area (points; raw Eq. 11
+  values scaled by the posterior-median friction factor s̄:
+  CDS = s̄·(lc − W_p·G/q̄) + W_p·G/q̄) with the posterior 50 % / 90 % bands
+  and median of the model drag area; last column the accelerometer drag area
+  (Eq. 8) with the bands of the predicted cluster channel. Row 1 the whole
+  test, the rows below zoom on each stage's fill (the seed's Fig. 12/15/25).
+* ``loads.png`` — total load from the accelerometer (Eq. 6,
+  F = q̄·CDS_acc − ΣW_p·G) with the predicted-load bands (model and
+  model + noise), and the scaled load-cell sum (the seed's Fig. 17/26/31).
+* ``corner_<chute>_s<k>.png`` — joint posterior of one stage's parameters.
+* ``trace.png`` — traces and rank histograms per ensemble of the parameters
+  with the worst R-hat.
+* ``ppc.png``, ``loo_pit.png``, ``residuals.png`` — the checks of
+  :mod:`cpas_bayes.inference.predictive_checks`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+
+from cpas_bayes.inference import predictive_checks as chk  # noqa: E402
+from cpas_bayes.core.files import save_figure  # noqa: E402
+
+_ACC = "#1f9bd1"
+_MODEL = "#d95f02"
+_DATA = "0.25"
+_PHASE_COLORS = {"pre_deploy": "0.88", "fill": "#fdd0a2", "overinflation": "#fcbba1",
+                 "steady": "#c6dbef", "full_open": "#c7e9c0"}
+ZOOM = {"infinite": (0.5, 3.0), "finite": (1.0, 10.0)}   # s before / after a stage start
+BAND_DRAWS = 400
+CORNER_FIELDS = ("start", "n_p", "expopen", "ck", "tk", "eps")
+CORNER_UNITS = {"start": "s", "tk": "s"}
+TRACE_PARAMETERS = 6
+_SI_QUANTITY = {"m²": "area", "N": "force"}   # parameter unit -> quantity converted to the bundle's units
+DPI = 110
+
+
+# ---------------------------------------------------------------------------
+# helpers
+
+
+def _quantile_bands(x):
+    """5, 25, 50, 75, 95 % quantiles over the first axis."""
+    return np.quantile(x, (0.05, 0.25, 0.5, 0.75, 0.95), axis=0)
+
+
+def _data_and_bands(ax, t, data, color, data_label, bands, band_label, starts, ylabel):
+    """One drag-area panel: measured points (if any), posterior bands, stage starts, labels."""
+    if data is not None:
+        ax.plot(t, data, ".", ms=2.5, color=color, label=data_label)
+    _draw_bands(ax, t, bands, _MODEL, band_label)
+    _mark_starts(ax, starts)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+
+
+def _draw_bands(ax, time, bands, color, label):
+    q05, q25, q50, q75, q95 = bands
+    ax.fill_between(time, q05, q95, color=color, alpha=0.2, lw=0, label=f"{label} 90 % band")
+    ax.fill_between(time, q25, q75, color=color, alpha=0.45, lw=0, label=f"{label} 50 % band")
+    ax.plot(time, q50, color=color, lw=1.2, zorder=4, label=f"{label} median")
+
+
+def _zoom(ax, time, t0, t1, *series, pad=0.05):
+    """Set x to [t0, t1] and y to the range of ``series`` (arrays over ``time``) in that window."""
+    ax.set_xlim(t0, t1)
+    m = (time >= t0) & (time <= t1)
+    if not m.any():
+        return
+    lo = min(float(np.nanmin(s[..., m])) for s in series)
+    hi = max(float(np.nanmax(s[..., m])) for s in series)
+    span = hi - lo if hi > lo else 1.0
+    ax.set_ylim(lo - pad * span, hi + pad * span)
+
+
+def _mark_starts(ax, starts, label=True):
+    for j, s in enumerate(starts):
+        ax.axvline(s, color="k", ls=":", lw=0.9, label="stage start (posterior median)" if label and j == 0 else None)
+
+
+def _band_draws(fit, n_draws, rng):
+    model = fit.model
+    draws = chk.posterior_matrix(fit.tree, model.names).reshape(-1, model.ndim)
+    pick = rng.choice(draws.shape[0], size=min(n_draws, draws.shape[0]), replace=False)
+    return chk.predict_draws(model, draws[pick])
+
+
+def _save(fig, path):
+    save_figure(fig, path, dpi=DPI)
+    plt.close(fig)
+    return path
+
+
+# ---------------------------------------------------------------------------
+# bands.png
+
+
+def _cluster_stage_window(model, timing, k):
+    """Parachutes having stage k, and the zoom window around their stage-k starts (ZOOM by inflation)."""
+    having = [p for p in model.parachutes if len(p.stages) > k]
+    first = min(timing[p.id][0][k] for p in having)
+    last = max(timing[p.id][0][k] for p in having)
+    before, after = ZOOM["finite" if any(p.inflation == "finite" for p in having) else "infinite"]
+    return having, first - before, last + after
+
+
+def plot_bands(fit, pred):
+    """Drag-area data with posterior bands, one column per parachute plus the accelerometer."""
+    model, obs, tree = fit.model, fit.model.obs, fit.tree
+    u = model.test.units
+    area = u.label("area")
+    t = obs.time
+    timing = chk.stage_timing_medians(fit)
+    s_bar = chk.posterior_median(tree, "load_scale", 1.0)
+    lc_row = {int(c): r for r, c in enumerate(obs.lc_index)}
+    n_cols = model.n_chutes + 1
+    n_rows = 1 + model.n_stages
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(4.6 * n_cols, 3.3 * n_rows), constrained_layout=True,
+                             squeeze=False)
+    for i, p in enumerate(model.parachutes):
+        bands = u.from_si(_quantile_bands(pred["cds"][:, i, :]), "area")
+        data = None
+        if i in lc_row:
+            w = obs.lc_weight_term[lc_row[i]]
+            data = u.from_si(s_bar * (obs.lc[lc_row[i]] - w) + w, "area")
+        starts = timing[p.id][0]
+        for row in range(n_rows):
+            ax = axes[row, i]
+            if row > len(p.stages):
+                ax.set_axis_off()
+                continue
+            _data_and_bands(ax, t, data, _DATA, f"load cell {p.id} (Eq. 11, × s̄ = {s_bar:.3f})", bands, "model",
+                            starts, f"drag area C_D S [{area}]")
+            if row == 0:
+                ax.set_title(f"{p.id} ({p.kind}, {p.inflation} mass): load cell against the model")
+                ax.legend(fontsize=7, loc="upper left")
+            else:
+                before, after = ZOOM[p.inflation]
+                s0 = starts[row - 1]
+                end = starts[row] if row < len(starts) else t[-1]
+                t1 = min(s0 + after, max(end, s0 + 0.5))
+                _zoom(ax, t, s0 - before, t1, bands, *(() if data is None else (data,)))
+                ax.set_title(f"{p.id} stage {row} ({p.stages[row - 1].label}): fill, peak and decay", fontsize=9)
+    ax_col = n_cols - 1
+    acc_bands = u.from_si(_quantile_bands(pred["acc"]), "area")
+    acc_data = u.from_si(obs.acc, "area")
+    all_starts = np.concatenate([timing[p.id][0] for p in model.parachutes])
+    for row in range(n_rows):
+        ax = axes[row, ax_col]
+        _data_and_bands(ax, t, acc_data, _ACC, "accelerometer drag area (Eq. 8)", acc_bands, "Σ canopies (model)",
+                        all_starts, f"total drag area [{area}]")
+        if row == 0:
+            ax.set_title("cluster: accelerometer against the summed model")
+            ax.legend(fontsize=7, loc="upper left")
+        else:
+            _, t0, t1 = _cluster_stage_window(model, timing, row - 1)
+            _zoom(ax, t, t0, t1, acc_bands, acc_data)
+            ax.set_title(f"cluster stage {row}: the sum of the individual fills", fontsize=9)
+    fig.suptitle(f"{model.test.name}: reconstructed drag areas — the posterior bands of the model (its "
+                 "uncertainty, not the noise)\nshould run through the middle of the points, fill, peak and decay "
+                 "included; lower rows zoom on each fill", fontsize=10)
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# loads.png
+
+
+def plot_loads(fit, pred, rng):
+    """Total load (Eq. 6) data with predicted-load bands; zooms on each stage."""
+    model, obs, tree = fit.model, fit.model.obs, fit.tree
+    u = model.test.units
+    force = u.label("force")
+    t = obs.time
+    qbar, g = obs.qbar_at(t), obs.g_at(t)
+    w_chutes = model.chute_weight.sum()
+
+    def to_load(cds_acc):
+        """Eq. 6 in drag-area form: F = q̄·CDS_acc − ΣW_p·G (= W_V·G − q̄·CDS_V), bundle units."""
+        return u.from_si(qbar * cds_acc - w_chutes * g, "force")
+
+    data = to_load(obs.acc)
+    model_bands = _quantile_bands(to_load(pred["acc"]))
+    sigma_acc, _ = chk.channel_sigma(obs)   # marginal 1-sigma of the channel (independent + q̄ parts)
+    noisy = pred["acc"] + pred["noise_acc"][:, None] * sigma_acc * rng.standard_normal(pred["acc"].shape)
+    predictive = np.quantile(to_load(noisy), (0.05, 0.95), axis=0)
+    s_bar = chk.posterior_median(tree, "load_scale", 1.0)
+    cells = None
+    if obs.lc_index.size:
+        weights = model.chute_weight[obs.lc_index][:, None]
+        cells = u.from_si((s_bar * (qbar * obs.lc - weights * g)).sum(axis=0), "force")
+    timing = chk.stage_timing_medians(fit)
+    K = model.n_stages
+    fig = plt.figure(figsize=(max(10, 4.2 * K), 8), constrained_layout=True)
+    grid = fig.add_gridspec(2, K)
+    top = fig.add_subplot(grid[0, :])
+    zooms = [fig.add_subplot(grid[1, k]) for k in range(K)]
+    for j, ax in enumerate([top] + zooms):
+        ax.fill_between(t, predictive[0], predictive[1], color="0.7", alpha=0.35, lw=0,
+                        label="predicted load + noise, 90 %")
+        _draw_bands(ax, t, model_bands, _MODEL, "predicted load")
+        ax.plot(t, data, ".", ms=2.5, color=_ACC, label="accelerometer load (Eq. 6)")
+        if cells is not None:
+            ax.plot(t, cells, lw=0.7, ls="--", color="#7b3294", alpha=0.7, zorder=1,
+                    label=f"load-cell sum × s̄ = {s_bar:.3f}")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(f"total parachute load [{force}]")
+        ax.grid(alpha=0.3)
+        if j == 0:
+            ax.legend(fontsize=7, loc="upper right")
+            ax.set_title("whole test")
+            continue
+        k = j - 1
+        having, t0, t1 = _cluster_stage_window(model, timing, k)
+        _zoom(ax, t, t0, t1, model_bands, data, predictive)
+        _mark_starts(ax, [timing[p.id][0][k] for p in having], label=False)
+        ax.set_title(f"stage {k + 1} ({having[0].stages[k].label}): peak load", fontsize=9)
+    fig.suptitle(f"{model.test.name}: total inflation load — the peak of the data should fall inside the "
+                 "predicted band, at the predicted time", fontsize=10)
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# corner plots
+
+
+def _density_levels(h, fractions=(0.5, 0.9)):
+    """Histogram heights enclosing the given probability fractions (highest first)."""
+    flat = np.sort(h.ravel())[::-1]
+    cum = np.cumsum(flat) / flat.sum()
+    return sorted({float(flat[min(np.searchsorted(cum, f), flat.size - 1)]) for f in fractions})
+
+
+def plot_corner(values, names, labels, title, max_points=2500, rng=None):
+    """Corner plot: histograms on the diagonal, scatter with 50 %/90 % contours below.
+
+    ``values`` (S, D) draws, ``names`` short names, ``labels`` axis labels with units.
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
+    d = len(names)
+    fig, axes = plt.subplots(d, d, figsize=(2.2 * d + 1, 2.2 * d + 1), squeeze=False)
+    # Fixed spacing: a constrained layout of d² axes costs seconds per figure.
+    fig.subplots_adjust(left=0.09, right=0.98, bottom=0.08, top=0.95, wspace=0.08, hspace=0.25)
+    pick = rng.choice(values.shape[0], size=min(max_points, values.shape[0]), replace=False)
+    for r in range(d):
+        for c in range(d):
+            ax = axes[r, c]
+            if c > r:
+                ax.set_axis_off()
+                continue
+            x = values[:, c]
+            if r == c:
+                q05, q50, q95 = np.quantile(x, (0.05, 0.5, 0.95))
+                ax.hist(x, bins=40, color=_MODEL, alpha=0.7, density=True)
+                for q in (q05, q50, q95):
+                    ax.axvline(q, color="k", lw=0.8, ls="--" if q != q50 else "-")
+                ax.set_title(f"{names[c]} = {q50:.4g} [{q05:.4g}, {q95:.4g}]", fontsize=8)
+                ax.set_yticks([])
+            else:
+                y = values[:, r]
+                ax.plot(x[pick], y[pick], ".", ms=1.2, color="0.5", alpha=0.4)
+                h, xe, ye = np.histogram2d(x, y, bins=30)
+                if h.sum() > 0 and np.ptp(x) > 0 and np.ptp(y) > 0:
+                    xc, yc = 0.5 * (xe[1:] + xe[:-1]), 0.5 * (ye[1:] + ye[:-1])
+                    levels = [lv for lv in _density_levels(h) if 0 < lv < h.max()]
+                    if levels:
+                        ax.contour(xc, yc, h.T, levels=levels, colors=[_MODEL], linewidths=0.9)
+            if r == d - 1:
+                ax.set_xlabel(labels[c], fontsize=8)
+            else:
+                ax.set_xticklabels([])
+            if c == 0 and r != 0:
+                ax.set_ylabel(labels[r], fontsize=8)
+            elif c != r:
+                ax.set_yticklabels([])
+            ax.tick_params(labelsize=7)
+    fig.suptitle(title, fontsize=10)
+    return fig
+
+
+def corner_groups(fit):
+    """[(chute id, stage k (1-based), [parameter names])] of each parachute stage."""
+    out = []
+    for p in fit.model.parachutes:
+        for k in range(1, len(p.stages) + 1):
+            names = [f"{p.id}.s{k}.{f}" for f in CORNER_FIELDS if f"{p.id}.s{k}.{f}" in fit.model.index]
+            out.append((p.id, k, names))
+    return out
+
+
+# ---------------------------------------------------------------------------
+# trace.png
+
+
+def worst_rhat_parameters(fit, n=TRACE_PARAMETERS):
+    """Names of the ``n`` parameters with the largest R-hat in the summary's diagnostics."""
+    per = fit.summary.get("diagnostics_per_parameter", {}) or {}
+    ranked = sorted(per, key=lambda name: -(per[name].get("rhat") or 0.0))
+    names = [name for name in ranked if name in fit.model.index][:n]
+    return names or list(fit.model.names[:n])
+
+
+def plot_trace(fit, names):
+    """Per parameter: trace of each ensemble (walker median and a few walkers) and rank histograms."""
+    post = fit.tree["posterior"]
+    ensemble = np.asarray(post["ensemble"].values) if "ensemble" in post.coords else np.zeros(post.sizes["chain"])
+    ids = np.unique(ensemble)
+    per = fit.summary.get("diagnostics_per_parameter", {}) or {}
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.1 * len(names) + 1), constrained_layout=True,
+                             squeeze=False, gridspec_kw={"width_ratios": [1.6, 1.0]})
+    units = fit.model.test.units
+    for r, name in enumerate(names):
+        unit = next((prm.unit for prm in fit.model.parameters if prm.name == name), "")
+        quantity = _SI_QUANTITY.get(unit)
+        x = np.asarray(post[name].values, float)          # (chain, draw)
+        if quantity:
+            x, unit = units.from_si(x, quantity), units.label(quantity)
+        ranks = np.argsort(np.argsort(x.ravel())).reshape(x.shape)
+        n_bins = 20
+        ax_t, ax_r = axes[r]
+        for j, e in enumerate(ids):
+            rows = x[ensemble == e]
+            color = colors[j % len(colors)]
+            for walker in rows[:3]:
+                ax_t.plot(walker, color=color, lw=0.4, alpha=0.35)
+            ax_t.plot(np.median(rows, axis=0), color=color, lw=1.4, label=f"ensemble {int(e) + 1} (walker median)")
+            counts, edges = np.histogram(ranks[ensemble == e], bins=n_bins, range=(0, x.size))
+            ax_r.stairs(counts / counts.sum() * n_bins, edges / x.size, color=color, lw=1.3, baseline=None,
+                        label=f"ensemble {int(e) + 1}")
+        ax_r.axhline(1.0, color="k", ls="--", lw=0.8, label="uniform (well mixed)")
+        ax_r.set_ylim(0.0, max(1.6, ax_r.get_ylim()[1]))   # from zero, so sampling wiggles look their size
+        rhat = per.get(name, {}).get("rhat")
+        ax_t.set_ylabel(f"{name} [{unit or '-'}]", fontsize=8)
+        ax_t.set_title(f"{name}: R-hat = {rhat:.4f}" if rhat is not None else name, fontsize=9)
+        ax_r.set_ylabel("rank density [-]", fontsize=8)
+        ax_t.grid(alpha=0.3)
+        if r == len(names) - 1:
+            ax_t.set_xlabel("stored draw after burn-in and thinning [-]")
+            ax_r.set_xlabel("normalised rank of the draw among all ensembles [-]")
+        if r == 0:
+            ax_t.legend(fontsize=7, loc="upper right")
+            ax_r.legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"{fit.model.test.name}: parameters with the worst R-hat — ensembles should overlap in the "
+                 "traces and their rank histograms stay flat", fontsize=10)
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# checks
+
+
+def plot_ppc(result):
+    """Observed statistic against its replicated distribution, standardised, p-values annotated."""
+    table = result.table
+    stats = list(chk.STATISTICS)
+    rows = table[["parachute", "stage", "stage_label"]].drop_duplicates().reset_index(drop=True)
+    fig, axes = plt.subplots(1, len(stats), figsize=(3.3 * len(stats), 0.42 * len(rows) + 2.2),
+                             constrained_layout=True, sharey=True, squeeze=False)
+    y = np.arange(len(rows))[::-1]
+    for c, name in enumerate(stats):
+        ax = axes[0, c]
+        for r, row in rows.iterrows():
+            sel = np.flatnonzero(((table["parachute"] == row["parachute"]) & (table["stage"] == row["stage"])
+                                  & (table["statistic"] == name)).to_numpy())
+            if not sel.size:
+                continue
+            i = int(sel[0])
+            rep = result.replicated[i]
+            rep = rep[np.isfinite(rep)]
+            obs = table["observed"].iloc[i]
+            p = table["p_value"].iloc[i]
+            if rep.size < 2 or not np.isfinite(obs):
+                ax.text(0, y[r], "n/a", ha="center", va="center", fontsize=7)
+                continue
+            mu, sd = rep.mean(), rep.std(ddof=1)
+            sd = sd if sd > 0 else 1.0
+            z = (rep - mu) / sd
+            q05, q25, q75, q95 = np.quantile(z, (0.05, 0.25, 0.75, 0.95))
+            ax.plot([q05, q95], [y[r], y[r]], color=_MODEL, lw=1.2)
+            ax.plot([q25, q75], [y[r], y[r]], color=_MODEL, lw=4.5, solid_capstyle="butt")
+            extreme = p < 0.01 or p > 0.99
+            ax.plot((obs - mu) / sd, y[r], "o", ms=5, color="crimson" if extreme else "k", zorder=3)
+            ax.text(1.02, y[r], f"p={p:.3f}", transform=ax.get_yaxis_transform(), fontsize=7, va="center",
+                    color="crimson" if extreme else "k")
+        ax.axvline(0, color="0.6", lw=0.8)
+        ax.set_title(name.replace("_", " "), fontsize=9)
+        ax.set_xlabel("(T − mean T_rep) / sd T_rep [-]", fontsize=8)
+        ax.grid(alpha=0.3, axis="x")
+    axes[0, 0].set_yticks(y)
+    axes[0, 0].set_yticklabels([f"{r.parachute} s{r.stage} ({r.stage_label})" for r in rows.itertuples()],
+                               fontsize=8)
+    handles = [plt.Line2D([], [], color=_MODEL, lw=4.5, label="replicated 50 %"),
+               plt.Line2D([], [], color=_MODEL, lw=1.2, label="replicated 90 %"),
+               plt.Line2D([], [], marker="o", ls="", color="k", label="observed"),
+               plt.Line2D([], [], marker="o", ls="", color="crimson", label="observed, p < 0.01 or > 0.99")]
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, -0.01))
+    fig.get_layout_engine().set(rect=(0, 0.05, 1, 0.95))
+    fig.suptitle("Posterior predictive check: each observed statistic (dot) should sit inside the replicated "
+                 "range (bars); p = P(T_rep ≥ T_obs)", fontsize=10)
+    return fig
+
+
+def plot_loo_pit(result):
+    """LOO-PIT ECDF difference per channel with the DKW 95 % band, and the PIT histograms."""
+    fig, (ax_e, ax_h) = plt.subplots(1, 2, figsize=(12, 4.6), constrained_layout=True)
+    grid = np.linspace(0, 1, 201)
+    band = result.table["dkw_band"].max()
+    ax_e.fill_between(grid, -band, band, color="0.85", label="95 % simultaneous band (DKW)")
+    for channel, u in result.values.items():
+        ecdf = np.searchsorted(np.sort(u), grid, side="right") / u.size
+        row = result.table[result.table["channel"] == channel].iloc[0]
+        line, = ax_e.plot(grid, ecdf - grid, lw=1.3, label=f"{channel}: KS D = {row.ks_distance:.3f}")
+        ax_h.hist(u, bins=20, range=(0, 1), density=True, histtype="step", lw=1.3, color=line.get_color(),
+                  label=f"{channel}: sd = {row.pit_sd:.3f}")
+    ax_h.axhline(1.0, color="k", ls="--", lw=0.8, label="uniform (sd 0.289)")
+    ax_e.axhline(0.0, color="k", lw=0.6)
+    ax_e.set_xlabel("LOO-PIT value u [-]")
+    ax_e.set_ylabel("ECDF(u) − u [-]")
+    ax_e.set_title("ECDF difference: should stay inside the grey band")
+    ax_h.set_xlabel("LOO-PIT value u [-]")
+    ax_h.set_ylabel("density [-]")
+    ax_h.set_title("histogram: ∪-shape = predictive too narrow, ∩-shape = too wide")
+    for ax in (ax_e, ax_h):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("LOO-PIT calibration per channel (neighbouring bins are correlated: the band is a guide)",
+                 fontsize=10)
+    return fig
+
+
+def _phase_segments(time, labels):
+    """(t_start, t_end, label) runs of equal phase, edges half-way between bins."""
+    edges = np.concatenate([[time[0]], 0.5 * (time[1:] + time[:-1]), [time[-1]]])
+    change = np.flatnonzero(labels[1:] != labels[:-1]) + 1
+    bounds = np.concatenate([[0], change, [labels.size]])
+    return [(edges[a], edges[b], labels[a]) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def shade_phases(ax, time, labels):
+    """Shade each flight phase's run of bins behind a residual panel."""
+    for t0, t1, label in _phase_segments(time, labels):
+        ax.axvspan(t0, t1, color=_PHASE_COLORS[label], lw=0, zorder=0)
+
+
+def finish_residual_figure(fig, axes, handles, bottom, title):
+    """Common legend (series + phases) under the panels, time axis label and title."""
+    phase_handles = [Patch(color=c, label=f"phase: {name.replace('_', ' ')}") for name, c in _PHASE_COLORS.items()]
+    fig.legend(handles=handles + phase_handles, loc="lower center", ncol=4, fontsize=8)
+    fig.get_layout_engine().set(rect=(0, bottom, 1, 1 - bottom))
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle(title, fontsize=10)
+
+
+def plot_residuals(report):
+    """Standardised residuals against time per channel, phases shaded, high Pareto-k bins marked."""
+    channels = list(report.residuals)
+    fig, axes = plt.subplots(len(channels), 1, figsize=(12, 2.6 * len(channels) + 1), constrained_layout=True,
+                             sharex=True, squeeze=False)
+    t = report.time
+    for r, channel in enumerate(channels):
+        ax = axes[r, 0]
+        res = report.residuals[channel]
+        shade_phases(ax, t, report.phases[channel])
+        ax.plot(t, res, ".", ms=2.5, color=_DATA, zorder=2, label="standardised residual")
+        for level in (-2, 2):
+            ax.axhline(level, color="k", ls="--", lw=0.7, label="±2" if level == 2 else None)
+        if r == 0 and report.high_pareto_k.shape[0]:
+            hk = report.high_pareto_k
+            top = np.nanmax(np.abs(res)) if res.size else 1.0
+            ax.plot(hk["time"], np.full(hk.shape[0], top), "v", color="crimson", ms=6, zorder=3,
+                    label=f"Pareto k > {chk.PARETO_K_LIMIT} (all channels of the bin)")
+        row = report.overall(channel)
+        ax.set_title(f"{channel}: mean {row['mean']:+.2f}, sd {row['sd']:.2f}, lag-1 ACF {row.acf1:+.2f}, "
+                     f"Ljung–Box p = {row.ljung_box_p:.2g}", fontsize=9)
+        ax.set_ylabel("(y − E[ŷ]) / (λ̄σ) [-]", fontsize=8)
+        ax.grid(alpha=0.3)
+        if r == 0:
+            handles, _ = ax.get_legend_handles_labels()
+    finish_residual_figure(fig, axes, handles, 0.06,
+                           "Standardised residuals: should look like white noise of sd 1 in every phase — runs, "
+                           "waves or offsets in a phase point at what the model misses")
+    return fig
+
+
+# ---------------------------------------------------------------------------
+# all figures
+
+
+def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0):
+    """Write every figure of a fit into folder ``out``; return their paths.
+
+    ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(rng)
+    checks = chk.run_checks(fit, rng=rng) if checks is None else checks
+    pred = _band_draws(fit, n_draws, rng)
+    paths = [_save(plot_bands(fit, pred), out / "bands.png"),
+             _save(plot_loads(fit, pred, rng), out / "loads.png")]
+    post = fit.tree["posterior"]
+    for pid, k, names in corner_groups(fit):
+        values = np.column_stack([np.asarray(post[n].values, float).ravel() for n in names])
+        short = [n.rsplit(".", 1)[-1] for n in names]
+        labels = [f"{s} [{CORNER_UNITS.get(s, '-')}]" for s in short]
+        title = (f"{fit.model.test.name}: {pid} stage {k} posterior — narrow, single-peaked clouds mean the "
+                 "data pin the parameters; tilted ones show trade-offs")
+        paths.append(_save(plot_corner(values, short, labels, title, rng=rng), out / f"corner_{pid}_s{k}.png"))
+    paths.append(_save(plot_trace(fit, worst_rhat_parameters(fit)), out / "trace.png"))
+    paths.append(_save(plot_ppc(checks.ppc), out / "ppc.png"))
+    paths.append(_save(plot_loo_pit(checks.loo_pit), out / "loo_pit.png"))
+    paths.append(_save(plot_residuals(checks.residuals), out / "residuals.png"))
+    return paths

@@ -1,0 +1,181 @@
+"""Physical and sensor effects beyond the seed's reduction equations.
+
+Pure numpy functions, each broadcasting over leading batch axes (runs,
+walkers, parachutes) with time last where there is a time axis. The simulator
+(:mod:`cpas_bayes.physics.trajectory`), the synthetic-test generator
+(:mod:`cpas_bayes.data.synth`) and the model extensions that fit these effects all
+call these same functions, so a fitted effect means what the simulated one did.
+
+Sign conventions follow the seed (Eq. 1–11): forces along the flight path,
+drag and the riser tension F_i positive, the sensed load factor G positive
+under drag, γ negative below the horizon.
+
+Added mass (seed §II: "enclosed and apparent mass ... accounted for later in
+the simulation codes")
+-----------------------------------------------------------------------------
+A canopy drags along the air it encloses plus an apparent mass of the air
+around it. Its volume scales with (drag area)^(3/2), so::
+
+    m_a = k_a · ρ · CDS^(3/2)                                     (A1)
+
+with k_a dimensionless (about 0.2–1.0). A hemisphere over a projected disk
+of area CDS/C_D,p encloses (2/3)·π^(−1/2)·(CDS/C_D,p)^(3/2) of air, i.e.
+k_a ≈ 0.376·C_D,p^(−3/2) ≈ 0.25 for C_D,p ≈ 1.3; apparent mass raises it.
+
+That air is captured from rest, so its momentum m_a·V has to be supplied by
+the riser. In the free body of parachute i (seed Eq. 10 with the air added;
+the air's weight is carried by buoyancy, so it adds no W·sin γ term)::
+
+    d/dt[(m_p,i + m_a,i)·V] = F_i − PRF·q̄·CDS_i − W_p,i·sin γ
+    ⇒  F_i = PRF·q̄·CDS_i − W_p,i·G + d(m_a,i·V)/dt               (A2)
+
+where G = −(dV/dt + g·sin γ)/g is the sensed load factor (Eq. 5) and
+d(m_a·V)/dt = ṁ_a·V + m_a·dV/dt: capturing air (ṁ_a > 0) pulls harder on the
+riser; decelerating the air already carried (dV/dt < 0) relieves it. The
+whole system (seed Eq. 1 with the air added)::
+
+    (m_T + Σ m_a,i)·dV/dt = −q̄·(PRF·Σ CDS_i + CDS_V) − W_T·sin γ − V·Σ ṁ_a,i   (A3)
+
+and the vehicle alone (Eq. 2) still gives G = (Σ F_i + q̄·CDS_V)/W_V (Eq. 6).
+Eliminating dV/dt::
+
+    W_T·G = q̄·(PRF·Σ CDS_i + CDS_V) + Σ d(m_a,i·V)/dt            (A4)
+
+So both reduction channels see the same apparent drag area:
+
+    accelerometer (Eq. 8):  W_T·G/q̄ − CDS_V   = Σ [PRF·CDS_i + d(m_a,i·V)/dt / q̄]
+    load cell    (Eq. 11):  (F_i + W_p,i·G)/q̄ = PRF·CDS_i + d(m_a,i·V)/dt / q̄
+
+The momentum term raises the apparent drag area while the canopy fills fast
+and lowers it afterwards while the carried air decelerates with the vehicle.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+ADDED_MASS_EXPONENT = 1.5  # volume ∝ (area)^(3/2)
+
+
+def added_mass(cds, density, k_a):
+    """Eq. A1: enclosed plus apparent air mass m_a = k_a·ρ·CDS^(3/2).
+
+    ``cds`` (m²), ``density`` (kg/m³) and ``k_a`` (dimensionless) broadcast
+    together; the result is in kg. Negative drag areas count as zero.
+    """
+    cds = np.clip(np.asarray(cds, float), 0.0, None)
+    return np.asarray(k_a, float) * np.asarray(density, float) * cds**ADDED_MASS_EXPONENT
+
+
+def added_mass_rate(cds, cds_rate, density, density_rate, k_a):
+    """dm_a/dt of Eq. A1: k_a·(ρ̇·CDS^(3/2) + (3/2)·ρ·CDS^(1/2)·dCDS/dt), kg/s."""
+    cds = np.clip(np.asarray(cds, float), 0.0, None)
+    k_a = np.asarray(k_a, float)
+    return k_a * (np.asarray(density_rate, float) * cds**ADDED_MASS_EXPONENT
+                  + ADDED_MASS_EXPONENT * np.asarray(density, float) * np.sqrt(cds) * np.asarray(cds_rate, float))
+
+
+def added_mass_momentum_rate(mass, mass_rate, airspeed, acceleration):
+    """d(m_a·V)/dt = ṁ_a·V + m_a·dV/dt (N): the momentum term of Eq. A2–A4."""
+    return np.asarray(mass_rate, float) * airspeed + np.asarray(mass, float) * acceleration
+
+
+def added_mass_acceleration(qbar, drag_area_total, vehicle_cds, total_weight, flight_path_angle,
+                            airspeed, added_mass_total, added_mass_rate_total, gravity):
+    """Eq. A3 solved for dV/dt (m/s²).
+
+    ``drag_area_total`` is PRF·Σ CDS_i (m²), ``vehicle_cds`` CDS_V, the total
+    weight W_T in N, ``added_mass_total`` Σ m_a,i (kg) and its rate (kg/s).
+    With zero added mass this is the seed's Eq. 3:
+    dV/dt = −q̄·(PRF·Σ CDS_i + CDS_V)·g/W_T − g·sin γ.
+    """
+    total_mass = np.asarray(total_weight, float) / gravity
+    drag = np.asarray(qbar, float) * (np.asarray(drag_area_total, float) + vehicle_cds)
+    return ((-drag - np.asarray(total_weight, float) * np.sin(flight_path_angle)
+             - np.asarray(airspeed, float) * added_mass_rate_total)
+            / (total_mass + np.asarray(added_mass_total, float)))
+
+
+def riser_tension(qbar, cds, parachute_weight, load_factor, prf=1.0, momentum_rate=0.0):
+    """Eq. 10 / A2: F_i = PRF·q̄·CDS_i − W_p,i·G + d(m_a,i·V)/dt (N).
+
+    ``load_factor`` is G in g (dimensionless); ``momentum_rate`` is the added
+    mass term (0 when added mass is off).
+    """
+    return prf * np.asarray(qbar, float) * cds - np.asarray(parachute_weight, float) * load_factor + momentum_rate
+
+
+def sensed_load_factor(acceleration, flight_path_angle, gravity):
+    """Eq. 5 along the flight path: G = −(dV/dt + g·sin γ)/g, positive under drag."""
+    return -(np.asarray(acceleration, float) + gravity * np.sin(flight_path_angle)) / gravity
+
+
+def breathing_factor(tau, amplitude, frequency_hz, damping_ratio):
+    """Canopy breathing after a peak: multiplier of the drag area.
+
+    ::
+
+        b(τ) = 1 + A·exp(−ζ·ω·τ)·sin(ω·sqrt(1 − ζ²)·τ),  ω = 2π·f,   τ ≥ 0
+        b(τ) = 1                                                  τ < 0
+
+    ``tau`` is the time since the stage's peak drag area (t_i + t_fp). A
+    damped oscillation that starts at zero, so a drag area multiplied by it
+    stays continuous. Realistic values: A 0.03–0.10; f 0.8–2 Hz for Drogues,
+    0.2–0.6 Hz for Mains; ζ 0.05–0.3 (ζ < 1 required).
+    """
+    tau = np.asarray(tau, float)
+    damping_ratio = np.asarray(damping_ratio, float)
+    if np.any((damping_ratio < 0) | (damping_ratio >= 1)):
+        raise ValueError("damping_ratio must be in [0, 1)")
+    omega = 2.0 * np.pi * np.asarray(frequency_hz, float)
+    after = np.clip(tau, 0.0, None)
+    ringing = np.exp(-damping_ratio * omega * after) * np.sin(omega * np.sqrt(1.0 - damping_ratio**2) * after)
+    return np.where(tau >= 0, 1.0 + np.asarray(amplitude, float) * ringing, 1.0)
+
+
+def friction_scale(t, s_start, s_end, t_start, t_end):
+    """Load-cell friction factor, a linear ramp in time (seed §III.B).
+
+    The load cell reads the riser tension divided by this factor (friction
+    over the fairlead loses tension before the cell). The seed's CDT-3-2
+    Drogues went from 1.159 to 1.107 between the midpoints of the two stages::
+
+        s(t) = s_start                                          t ≤ t_start
+        s(t) = s_start + (s_end − s_start)·(t − t_start)/(t_end − t_start)
+        s(t) = s_end                                            t ≥ t_end
+
+    ``t`` has time last (..., T); the other arguments broadcast over the
+    leading axes (shape (...,)). ``t_end`` must be after ``t_start``.
+    """
+    t = np.asarray(t, float)
+    s_start, s_end, t_start, t_end = (np.asarray(a, float)[..., None] for a in (s_start, s_end, t_start, t_end))
+    if np.any(t_end <= t_start):
+        raise ValueError("friction_scale needs t_end > t_start")
+    frac = np.clip((t - t_start) / (t_end - t_start), 0.0, 1.0)
+    return s_start + (s_end - s_start) * frac
+
+
+def lagged(t, values, lag):
+    """A channel delayed by ``lag`` seconds: values(t − lag), linear interpolation.
+
+    ``t`` (T,) strictly increasing sample times; ``values`` (..., T); ``lag``
+    scalar or (...,) broadcasting with the leading axes of ``values``, ≥ 0.
+    Before the first sample the first value is held (the sensor read its
+    initial value before the record began).
+    """
+    t = np.asarray(t, float)
+    values = np.asarray(values, float)
+    lag = np.asarray(lag, float)
+    if np.any(lag < 0):
+        raise ValueError("lag must be ≥ 0 (a delay)")
+    batch = np.broadcast_shapes(values.shape[:-1], lag.shape)
+    values = np.broadcast_to(values, batch + t.shape)
+    query = t - lag[..., None]                      # (..., T)
+    query = np.broadcast_to(query, batch + t.shape)
+    right = np.clip(np.searchsorted(t, query, side="right"), 1, len(t) - 1)
+    left = right - 1
+    t_left, t_right = t[left], t[right]
+    weight = np.clip((query - t_left) / (t_right - t_left), 0.0, 1.0)
+    v_left = np.take_along_axis(values, left, axis=-1)
+    v_right = np.take_along_axis(values, right, axis=-1)
+    return v_left + weight * (v_right - v_left)

@@ -1,0 +1,2 @@
+"""Pooling many tests' posteriors into population distributions: the model memo for Monte Carlo.
+"""

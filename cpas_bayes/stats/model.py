@@ -1,0 +1,590 @@
+"""The forward model and likelihood of one flight test, batched over parameter sets.
+
+A :class:`TestModel` is a set of named parameters with priors and a pipeline
+that turns a batch of parameter vectors θ (B, D) into predicted observations:
+
+1. inflation: each parachute's drag area CDS_i(t) by the stage law
+   (:func:`cpas_bayes.physics.inflation.parachute_drag_area`), V_i = measured airspeed
+   at each sampled stage start;
+2. extensions may reshape CDS_i (e.g. canopy breathing), add an apparent
+   drag area seen by both channels (added mass), change the load-cell
+   friction factor in time, or shift the load-cell time base;
+3. channels: accelerometer drag area, computed by the reduction with the
+   *stated* W_T and CDS_V (Eq. 8)::
+
+       acc = (W_T,stated / W_T) · (Σ CDS_i + CDS_V) − CDS_V,stated
+
+   and each load cell's raw drag area (Eq. 11, before friction scaling)::
+
+       lc_i(t) = [q̄(t−δ)·CDS_i(t−δ) − W_p,i·G(t−δ)] / (s·q̄(t)) + W_p,i·G(t)/q̄(t)
+
+   with s the friction factor (true load / reading) and δ a load-cell lag
+   (0 in the baseline, where lc_i = CDS_i/s + (1 − 1/s)·W_p,i·G/q̄);
+4. noise: Gaussian errors, independent from one time bin to the next; within a
+   bin the channels share the measured q̄'s error (both Eq. 8 and Eq. 11 divide
+   by it), so their covariance is Λ·(D + u·uᵀ)·Λ with D the independent
+   variances, u the q̄ part of each channel's 1-sigma and Λ the error
+   multipliers per channel group (``noise_acc``, ``noise_lc``). With
+   r̃ = r/λ, Sherman–Morrison gives per bin::
+
+       r̃ᵀ(D + uuᵀ)⁻¹r̃ = Σ r̃_c²/d_c² − (Σ r̃_c·u_c/d_c²)² / (1 + Σ u_c²/d_c²)
+       log det = Σ log d_c² + log(1 + Σ u_c²/d_c²) + 2·Σ log λ_c
+
+   An extension may replace this (AR(1) errors).
+
+The baseline is the seed's simulation: individual parachutes, the stage law,
+no added mass, ideal sensors up to the load-cell scale, independent errors.
+Extensions (:mod:`cpas_bayes.stats.model_terms`) plug into the hooks of step 2 and 4
+without copying the model.
+
+For the sampler, the baseline's total log-likelihood runs steps 1, 3 and 4 in
+one compiled loop per walker (:func:`_baseline_quadratic_form`); the numpy
+pipeline above stays the reference (``predict``, pointwise values, extensions).
+
+Parameter names: ``<chute>.cds_o``, ``<chute>.s<k>.<name>`` for stage k (1-based)
+and name in start, n_p, expopen, ck, tk, eps; ``vehicle_weight``,
+``vehicle_cds``, ``load_scale``, ``noise_acc``, ``noise_lc``; extensions add
+their own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from cpas_bayes.data.bundle import FlightTest
+from cpas_bayes.physics.inflation import DECAY_SHAPES, parachute_stage_law, cluster_drag_area
+from cpas_bayes.stats.observations import Observations
+from cpas_bayes.stats.priors import KindPriors, Normal, NuisancePriors, PriorSet, TruncNormal, stage_role
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A named model parameter with its prior."""
+
+    name: str
+    prior: object
+    unit: str = ""
+    group: str = "inflation"
+
+
+@dataclass
+class Prediction:
+    """Predicted observations for a batch: ``acc`` (B, N), ``lc`` (B, L, N), and the parts."""
+
+    acc: np.ndarray
+    lc: np.ndarray
+    cds: np.ndarray               # (B, P, N) drag area of each parachute at the bin times
+    timing: object                # inflation.StageTiming, fields (B, P, K)
+    noise_acc: np.ndarray         # (B,) error multipliers
+    noise_lc: np.ndarray
+
+
+@dataclass
+class Context:
+    """What the pipeline passes to extensions for one batch."""
+
+    model: "TestModel"
+    theta: np.ndarray
+    values: dict                  # parameter name -> (B,) array
+    time: np.ndarray              # (N,) bin times
+    stage: dict = field(default_factory=dict)   # start, cds_stage, ... each (B, P, K)
+
+
+class Extension:
+    """A term added to the baseline model. Override the hooks you need.
+
+    ``parameters(model)`` returns the extension's :class:`Parameter` list. The
+    hooks receive a :class:`Context` and return arrays broadcastable to the
+    shapes named.
+    """
+
+    name = "extension"
+    # (parameter, size): a fitted |median| below size is practically no effect (a region of
+    # practical equivalence around the neutral value); None for terms without a physical size.
+    practical_floor = None
+
+    def parameters(self, model):
+        return []
+
+    def initial_values(self, model):
+        """Starting values {name: value} for the MAP search (default: prior medians)."""
+        return {}
+
+    def start_points(self, model):
+        """Starting values of this term's parameters when it is added to a fitted baseline:
+        a list of {name: value}, each one MAP start (default: ``initial_values``)."""
+        return [self.initial_values(model)]
+
+    def reshape_drag_area(self, ctx, cds, t):
+        """Return a modified (B, P, N) drag area evaluated at times ``t``."""
+        return cds
+
+    def apparent_drag_area(self, ctx, t):
+        """Extra drag area (B, P, N) seen by both channels (momentum terms), or None."""
+        return None
+
+    def load_cell_lag(self, ctx):
+        """Load-cell delay behind the IMU time base, s, (B,) or None."""
+        return None
+
+    def friction_factor(self, ctx, t):
+        """Load-cell friction factor (B, N) at times ``t``, or None to keep the constant one."""
+        return None
+
+    def log_likelihood(self, ctx, pred, obs):
+        """Pointwise log-likelihood (B, N) replacing the independent Gaussian, or None."""
+        return None
+
+
+@numba.njit(cache=True)
+def _interp(x, xp, fp):
+    """np.interp at one point (same formula and end clamping), without numba's per-call array."""
+    n = xp.shape[0]
+    if np.isnan(x):
+        return x
+    if x < xp[0]:
+        return fp[0]
+    j = np.searchsorted(xp, x, side="right") - 1
+    if j >= n - 1 or xp[j] == x:
+        return fp[j]
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    return slope * (x - xp[j]) + fp[j]
+
+
+@numba.njit(cache=True)
+def _baseline_quadratic_form(theta, consts, gather, cds_o_index, diameter, n_stages, linear, native_time,
+                             native_airspeed, t, acc_obs, lc_obs, lc_weight_term, lc_index, scalars,
+                             stated_vehicle_cds, stated_total_weight, chute_weight_sum,
+                             w_acc, a_acc, w_lc, a_lc, inv_denom, out):
+    """Σ over bins of r̃ᵀ(D + uuᵀ)⁻¹r̃ per walker (B,) into ``out``: predict + _quadratic_form fused.
+
+    ``gather`` (6, P, K) indexes θ for start, n_p, expopen, ck, tk, eps (≥ D: ``consts``);
+    ``scalars`` the columns of vehicle_weight, vehicle_cds, noise_acc, load_scale, noise_lc.
+    Scratch is one walker's (P, N) drag areas and (N,) sums, so memory stays small for any batch.
+    """
+    B, D = theta.shape
+    P, K = gather.shape[1], gather.shape[2]
+    N = t.shape[0]
+    L = lc_index.shape[0]
+    cds = np.empty((P, N))
+    stage = np.empty((7, K))      # start, n_p, expopen, ck, tk, cds_stage, v_start
+    timing = np.empty((4, K))     # unused outputs of the stage law
+    shared = np.empty(N)          # Σ_c r̃_c·u_c/d_c² per bin
+    diag = np.empty(N)            # Σ_c r̃_c²/d_c² per bin
+    for b in range(B):
+        for p in range(P):
+            cds_o = theta[b, cds_o_index[p]]
+            for k in range(n_stages[p]):
+                for j in range(6):
+                    g = gather[j, p, k]
+                    stage[j, k] = theta[b, g] if g < D else consts[g - D]
+                stage[5, k] *= cds_o
+                stage[6, k] = _interp(stage[0, k], native_time, native_airspeed)
+            cds[p, :] = 0.0
+            parachute_stage_law(t, stage[0], stage[5], cds_o, diameter[p], stage[1], stage[2], stage[3],
+                              stage[4], stage[6], n_stages[p], linear, True, True, cds[p],
+                              timing[0], timing[1], timing[2], timing[3])
+        weight_ratio = stated_total_weight / (theta[b, scalars[0]] + chute_weight_sum)
+        cds_v = theta[b, scalars[1]]
+        # Reciprocals: divisions in the bin loop would bound its speed.
+        inv_noise_acc = 1.0 / theta[b, scalars[2]]
+        inv_scale = 1.0 / theta[b, scalars[3]] if L > 0 else 1.0
+        inv_noise_lc = 1.0 / theta[b, scalars[4]] if L > 0 else 1.0
+        keep = 1.0 - inv_scale
+        # Channel by channel over the bins (contiguous loops the compiler vectorises).
+        for i in range(N):
+            total = cds[0, i]
+            for p in range(1, P):
+                total += cds[p, i]
+            r = (acc_obs[i] - (weight_ratio * (total + cds_v) - stated_vehicle_cds)) * inv_noise_acc
+            shared[i] = r * a_acc[i]
+            diag[i] = r * r * w_acc[i]
+        for l in range(L):
+            c = lc_index[l]
+            for i in range(N):
+                r = (lc_obs[l, i] - (cds[c, i] * inv_scale + lc_weight_term[l, i] * keep)) * inv_noise_lc
+                shared[i] += r * a_lc[l, i]
+                diag[i] += r * r * w_lc[l, i]
+        quad = 0.0
+        for i in range(N):
+            quad += diag[i] - shared[i] * shared[i] * inv_denom[i]
+        out[b] = quad
+
+
+def _stage_names(k):
+    return f"s{k + 1}"
+
+
+class TestModel:
+    """Parameters, priors and batched likelihood of one flight test.
+
+    ``model(theta)`` returns the log posterior for θ (B, D) as emcee's
+    ``vectorize=True`` expects (−inf outside the prior, never NaN).
+    """
+
+    __test__ = False  # a flight *test* model, not a pytest class
+
+    def __init__(self, test: FlightTest, obs: Observations, kind_priors: dict, nuisance: NuisancePriors,
+                 decay="linear", extensions=()):
+        if decay not in DECAY_SHAPES:
+            raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+        self.test = test
+        self.obs = obs
+        self.decay = decay
+        self.extensions = tuple(extensions)
+        self.kind_priors = kind_priors
+        self.nuisance_priors = nuisance
+        self.parachutes = test.parachutes
+        self.n_chutes = len(test.parachutes)
+        self.n_stages = max(len(p.stages) for p in test.parachutes)
+        self.stages_per_chute = np.array([len(p.stages) for p in test.parachutes])
+        self.parameters = self._build_parameters()
+        self.names = [p.name for p in self.parameters]
+        self.prior_set = PriorSet(p.prior for p in self.parameters)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self._build_gather()
+        self.diameter = np.array([p.diameter for p in test.parachutes])
+        self.area_o = math.pi / 4 * self.diameter**2
+        self.chute_weight = np.array([p.weight for p in test.parachutes])
+        self.stated_total_weight = obs.stated_vehicle_weight + self.chute_weight.sum()
+        self._w_acc = 1.0 / obs.acc_sigma**2
+        self._w_lc = 1.0 / obs.lc_sigma**2
+        self._a_acc = obs.acc_qbar * self._w_acc
+        self._a_lc = obs.lc_qbar * self._w_lc
+        self._denom = 1.0 + obs.acc_qbar * self._a_acc + (obs.lc_qbar * self._a_lc).sum(axis=0)
+        self._inv_denom = 1.0 / self._denom
+        n_channels = 1 + obs.lc.shape[0]
+        # Parameter-free part of log N per bin: −½·log det(D + uuᵀ) − ½·C·log 2π.
+        self._ll_const = -0.5 * (np.log(obs.acc_sigma**2) + np.log(obs.lc_sigma**2).sum(axis=0)
+                                 + np.log(self._denom) + n_channels * _LOG_2PI)
+
+    # -- parameters -------------------------------------------------------
+
+    @property
+    def ndim(self):
+        return len(self.parameters)
+
+    @property
+    def name(self):
+        return "baseline" if not self.extensions else "+".join(e.name for e in self.extensions)
+
+    def _build_parameters(self):
+        params = []
+        test = self.test
+        for p in test.parachutes:
+            kp: KindPriors = self.kind_priors[p.kind]
+            s_o = math.pi / 4 * p.diameter**2
+            cd = kp.parachute["cd_o"]
+            params.append(Parameter(f"{p.id}.cds_o", cd.scaled(s_o), "m²"))
+            n = len(p.stages)
+            for k, st in enumerate(p.stages):
+                role = stage_role(k, n)
+                pre = f"{p.id}.{_stage_names(k)}"
+                params.append(Parameter(f"{pre}.start", Normal(st.start, max(st.start_sigma, 1e-3)), "s"))
+                params.append(Parameter(f"{pre}.n_p", kp.for_stage(role, "n_p")))
+                params.append(Parameter(f"{pre}.expopen", kp.for_stage(role, "expopen")))
+                if p.inflation == "infinite":
+                    params.append(Parameter(f"{pre}.ck", kp.for_stage(role, "ck")))
+                    params.append(Parameter(f"{pre}.tk", kp.for_stage(role, "tk"), "s"))
+                if k < n - 1:
+                    params.append(Parameter(f"{pre}.eps", kp.for_stage(role, "eps")))
+        v = test.vehicle
+        params.append(Parameter("vehicle_weight",
+                                TruncNormal(v.weight, max(v.weight_sigma, 1e-6 * v.weight), 0.5 * v.weight,
+                                            1.5 * v.weight), "N", "nuisance"))
+        params.append(Parameter("vehicle_cds",
+                                TruncNormal(v.cds, max(v.cds_sigma, 1e-3), 0.0, v.cds + 10 * max(v.cds_sigma, 1e-3)),
+                                "m²", "nuisance"))
+        has_lc = any(p.load_cell for p in test.parachutes)
+        params.append(Parameter("noise_acc", self.nuisance_priors["noise_acc"], "", "nuisance"))
+        if has_lc:
+            params.append(Parameter("load_scale", self.nuisance_priors["load_scale"], "", "nuisance"))
+            params.append(Parameter("noise_lc", self.nuisance_priors["noise_lc"], "", "nuisance"))
+        for ext in self.extensions:
+            for prm in ext.parameters(self):
+                params.append(prm)
+        return params
+
+    def _build_gather(self):
+        """Index arrays that gather (B, D) θ into (B, P, K) stage arrays; constants sit past D."""
+        P, K, D = self.n_chutes, self.n_stages, self.ndim
+        constants = {"one": D, "zero": D + 1}
+        self._constants = np.array([1.0, 0.0])
+        gather = {name: np.full((P, K), -1, dtype=int) for name in ("start", "n_p", "expopen", "ck", "tk", "eps")}
+        self.stage_mask = np.zeros((P, K), dtype=bool)
+        for i, p in enumerate(self.parachutes):
+            n = len(p.stages)
+            for k in range(K):
+                kk = min(k, n - 1)  # pad short parachutes by repeating their last stage
+                pre = f"{p.id}.{_stage_names(kk)}"
+                self.stage_mask[i, k] = k < n
+                for name in gather:
+                    key = f"{pre}.{name}"
+                    if key in self.index:
+                        gather[name][i, k] = self.index[key]
+                    elif name == "ck" or name == "eps":
+                        gather[name][i, k] = constants["one"]
+                    elif name == "tk":
+                        gather[name][i, k] = constants["zero"]
+                if k >= n:  # padded stage: starts after the data end, never active
+                    gather["start"][i, k] = -2
+        self._gather = gather
+        self._cds_o_index = np.array([self.index[f"{p.id}.cds_o"] for p in self.parachutes])
+        # The same gather for the fused kernel, which never reads padded stages.
+        stacked = np.stack(list(gather.values()))
+        self._gather_array = np.where(stacked < 0, constants["zero"], stacked).astype(np.int64)
+        # Without load cells there is no load_scale or noise_lc; the kernel then reads neither.
+        self._scalar_index = np.array([self.index.get(n, 0) for n in
+                                       ("vehicle_weight", "vehicle_cds", "noise_acc", "load_scale", "noise_lc")],
+                                      dtype=np.int64)
+        # Columns of each parachute's consecutive stage starts, for the prior's ordering check.
+        pairs = [(gather["start"][i, k], gather["start"][i, k + 1])
+                 for i, n in enumerate(self.stages_per_chute) for k in range(n - 1)]
+        self._start_order = tuple(np.ascontiguousarray(a) for a in np.array(pairs, dtype=np.int64).reshape(-1, 2).T)
+
+    def gather_stages(self, theta):
+        """Stage arrays (B, P, K) from θ (B, D): start, n_p, expopen, ck, tk, eps, cds_stage."""
+        B = theta.shape[0]
+        ext = np.concatenate([theta, np.broadcast_to(self._constants, (B, 2))], axis=1)
+        out = {}
+        for name, idx in self._gather.items():
+            if name == "start":
+                safe = np.where(idx == -2, 0, idx)
+                vals = ext[:, safe]
+                out[name] = np.where(idx == -2, self.obs.native_time[-1] + 1e3, vals)
+            else:
+                out[name] = ext[:, idx]
+        out["cds_o"] = theta[:, self._cds_o_index]
+        out["cds_stage"] = out["eps"] * out["cds_o"][:, :, None]
+        return out
+
+    def values(self, theta):
+        """Named view of θ: {name: (B,)}."""
+        return {n: theta[:, i] for i, n in enumerate(self.names)}
+
+    # -- prior ----------------------------------------------------------------
+
+    def log_prior(self, theta):
+        """Log prior (B,): :attr:`prior_set` with −inf where a parachute's stages are out of order."""
+        theta = np.atleast_2d(theta)
+        lp = self.prior_set.logpdf(theta)
+        earlier, later = self._start_order
+        ordered = np.all(theta[:, later] > theta[:, earlier], axis=1)
+        return np.where(ordered & np.isfinite(lp), lp, -np.inf)
+
+    def sample_prior(self, rng, size):
+        """Draws from the prior (B, D), each column by inverse transform."""
+        return np.column_stack([p.prior.sample(rng, size) for p in self.parameters])
+
+    # -- forward model ------------------------------------------------------
+
+    def drag_areas(self, stage, t):
+        """Per-parachute drag areas (B, P, N) at times ``t`` (N,) or (B, 1, N) and the stage timing."""
+        v_start = self.obs.airspeed_at(stage["start"])
+        if np.ndim(t) == 3:  # (B, 1, N): one time base per row
+            t = t[:, 0, :]
+        return cluster_drag_area(
+            t, stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter,
+            stage["n_p"], stage["expopen"], stage["ck"], stage["tk"], v_start,
+            n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p")
+
+    def predict(self, theta):
+        theta = np.atleast_2d(theta)
+        obs = self.obs
+        values = self.values(theta)
+        stage = self.gather_stages(theta)
+        ctx = Context(self, theta, values, obs.time, stage)
+        t = obs.time
+        cds, timing = self.drag_areas(stage, t)
+        ctx.stage["timing"] = timing
+        for ext in self.extensions:
+            cds = ext.reshape_drag_area(ctx, cds, t)
+        apparent = self._apparent(ctx, t)
+        seen = cds if apparent is None else cds + apparent
+
+        weight_ratio = self.stated_total_weight / (values["vehicle_weight"] + self.chute_weight.sum())
+        cds_v = values["vehicle_cds"]
+        acc = weight_ratio[:, None] * (seen.sum(axis=1) + cds_v[:, None]) - obs.stated_vehicle_cds
+
+        lc = np.empty((theta.shape[0], obs.lc_index.size, t.size))
+        if obs.lc_index.size:
+            lc = self._load_cells(ctx, seen, t)
+        noise_lc = values.get("noise_lc", np.ones(theta.shape[0]))
+        return Prediction(acc=acc, lc=lc, cds=cds, timing=timing,
+                          noise_acc=values["noise_acc"], noise_lc=noise_lc)
+
+    def _apparent(self, ctx, t):
+        total = None
+        for ext in self.extensions:
+            extra = ext.apparent_drag_area(ctx, t)
+            if extra is not None:
+                total = extra if total is None else total + extra
+        return total
+
+    def _load_cells(self, ctx, seen, t):
+        obs = self.obs
+        values = ctx.values
+        scale = values["load_scale"][:, None]
+        factor = None
+        for ext in self.extensions:
+            f = ext.friction_factor(ctx, t)
+            if f is not None:
+                factor = f
+        s = scale if factor is None else factor               # (B, 1) or (B, N)
+        lag = None
+        for ext in self.extensions:
+            d = ext.load_cell_lag(ctx)
+            if d is not None:
+                lag = d
+        idx = obs.lc_index
+        weights = self.chute_weight[idx][None, :, None]
+        baseline = seen[:, idx, :] / s[:, None, :] + obs.lc_weight_term[None] * (1.0 - 1.0 / s[:, None, :])
+        if lag is None:
+            return baseline
+        # The load cell at t shows the riser at t − δ, while the reduction forms its drag
+        # area with the IMU's q̄(t) and G(t). Added to the baseline as the change of the
+        # modelled riser force over the lag, so δ = 0 is the baseline exactly.
+        t_lag = t[None, :] - lag[:, None]                     # (B, N)
+        cds_lag, _ = self.drag_areas(ctx.stage, t_lag[:, None, :])
+        for ext in self.extensions:
+            cds_lag = ext.reshape_drag_area(ctx, cds_lag, t_lag[:, None, :])
+        extra = self._apparent(ctx, t_lag[:, None, :])
+        if extra is not None:
+            cds_lag = cds_lag + extra
+        q_now = obs.qbar_at(t)[None, None, :]
+        force_lag = obs.qbar_at(t_lag)[:, None, :] * cds_lag[:, idx, :] - weights * obs.g_at(t_lag)[:, None, :]
+        force_now = q_now * seen[:, idx, :] - weights * obs.g_at(t)[None, None, :]
+        return baseline + (force_lag - force_now) / (s[:, None, :] * q_now)
+
+    # -- likelihood -----------------------------------------------------------
+
+    def _quadratic_form(self, theta, pred):
+        """Per-bin r̃ᵀ(D + uuᵀ)⁻¹r̃ (B, N) and the per-channel parts of its diagonal."""
+        obs = self.obs
+        r_acc = (obs.acc[None, :] - pred.acc) / pred.noise_acc[:, None]
+        r_lc = (obs.lc[None] - pred.lc) / pred.noise_lc[:, None, None]
+        shared = r_acc * self._a_acc + (r_lc * self._a_lc).sum(axis=1)
+        diag_acc = r_acc**2 * self._w_acc
+        diag_lc = r_lc**2 * self._w_lc
+        return diag_acc + diag_lc.sum(axis=1) - shared**2 / self._denom, r_acc, r_lc
+
+    def whitened_residuals(self, theta, pred):
+        """Residuals whitened with the per-bin covariance: z (B, C, N) with z ~ N(0, I) under the model.
+
+        Channels are ordered accelerometer, then the load cells. With v = D^(−½)u,
+        (I + vvᵀ)^(−½) = I − c·vvᵀ, c = (1 − 1/√(1 + |v|²))/|v|², so
+        z = (I − c·vvᵀ)·D^(−½)·r̃ and zᵀz is the quadratic form of the likelihood.
+        Also returns log det Σ per bin (B, N) (with the multipliers).
+        """
+        obs = self.obs
+        r_acc = (obs.acc[None, :] - pred.acc) / pred.noise_acc[:, None]
+        r_lc = (obs.lc[None] - pred.lc) / pred.noise_lc[:, None, None]
+        y = np.concatenate([r_acc[:, None, :] * np.sqrt(self._w_acc), r_lc * np.sqrt(self._w_lc)], axis=1)
+        v = np.concatenate([(obs.acc_qbar * np.sqrt(self._w_acc))[None], obs.lc_qbar * np.sqrt(self._w_lc)])
+        v2 = self._denom - 1.0
+        c = np.where(v2 > 1e-12, (1.0 - 1.0 / np.sqrt(self._denom)) / np.where(v2 > 1e-12, v2, 1.0), 0.5)
+        z = y - c * v * (v * y).sum(axis=1, keepdims=True)
+        log_det = -2.0 * (self._ll_const + 0.5 * (1 + obs.lc.shape[0]) * _LOG_2PI) \
+            + 2.0 * self._log_multipliers(pred)[:, None]
+        return z, log_det
+
+    def _log_multipliers(self, pred):
+        """Σ_c log λ_c per bin (B,): one accelerometer channel and L load cells."""
+        return np.log(pred.noise_acc) + self.obs.lc.shape[0] * np.log(pred.noise_lc)
+
+    def pointwise_log_likelihood(self, theta, pred=None, by_channel=False):
+        """Log-likelihood per time bin (B, N), all channels jointly.
+
+        With ``by_channel`` returns ``(acc (B, N), lc (B, L, N))``: each channel's
+        *marginal* log density (variance λ²·(d² + u²)), for per-channel diagnostics;
+        their sum is not the joint value because of the shared q̄ error.
+        """
+        theta = np.atleast_2d(theta)
+        pred = self.predict(theta) if pred is None else pred
+        ctx = Context(self, theta, self.values(theta), self.obs.time)
+        for ext in self.extensions:
+            ll = ext.log_likelihood(ctx, pred, self.obs)
+            if ll is not None:
+                if by_channel:
+                    raise ValueError(f"the {ext.name} error model has no per-channel log-likelihood; "
+                                     "ask for the joint one (by_channel=False)")
+                return ll
+        obs = self.obs
+        if by_channel:
+            var_acc = pred.noise_acc[:, None] ** 2 * (obs.acc_sigma**2 + obs.acc_qbar**2)
+            var_lc = pred.noise_lc[:, None, None] ** 2 * (obs.lc_sigma**2 + obs.lc_qbar**2)
+            ll_acc = -0.5 * ((obs.acc - pred.acc) ** 2 / var_acc + np.log(var_acc) + _LOG_2PI)
+            ll_lc = -0.5 * ((obs.lc - pred.lc) ** 2 / var_lc + np.log(var_lc) + _LOG_2PI)
+            return ll_acc, ll_lc
+        quad, _, _ = self._quadratic_form(theta, pred)
+        return -0.5 * quad - self._log_multipliers(pred)[:, None] + self._ll_const
+
+    @property
+    def replaces_error_model(self):
+        """True when an extension brings its own error model (no per-channel log-likelihood then)."""
+        return any(type(ext).log_likelihood is not Extension.log_likelihood for ext in self.extensions)
+
+    def log_likelihood(self, theta):
+        """Total log-likelihood (B,), the sum of :meth:`pointwise_log_likelihood` over bins."""
+        theta = np.atleast_2d(theta)
+        if not self.extensions:
+            return self._baseline_log_likelihood(theta)
+        pred = self.predict(theta)
+        if self.replaces_error_model:
+            return self.pointwise_log_likelihood(theta, pred).sum(axis=1)
+        quad, _, _ = self._quadratic_form(theta, pred)
+        return (-0.5 * quad.sum(axis=1) - self.obs.n_bins * self._log_multipliers(pred)
+                + self._ll_const.sum())
+
+    def _baseline_log_likelihood(self, theta):
+        """log_likelihood without extensions by the fused kernel (the sampler's hot path)."""
+        theta = np.ascontiguousarray(theta, dtype=float)
+        obs = self.obs          # read per call: checks and tests swap in edited observations
+        quad = np.empty(theta.shape[0])
+        _baseline_quadratic_form(
+            theta, self._constants, self._gather_array, self._cds_o_index, self.diameter,
+            self.stages_per_chute, self.decay == "linear", obs.native_time, obs.native_airspeed,
+            obs.time, obs.acc, obs.lc, obs.lc_weight_term, obs.lc_index, self._scalar_index,
+            float(obs.stated_vehicle_cds), float(self.stated_total_weight), float(self.chute_weight.sum()),
+            self._w_acc, self._a_acc, self._w_lc, self._a_lc, self._inv_denom, quad)
+        idx = self._scalar_index
+        log_multipliers = np.log(theta[:, idx[2]])
+        if obs.lc_index.size:
+            log_multipliers = log_multipliers + obs.lc.shape[0] * np.log(theta[:, idx[4]])
+        return -0.5 * quad - obs.n_bins * log_multipliers + self._ll_const.sum()
+
+    def log_posterior(self, theta):
+        theta = np.atleast_2d(theta)
+        lp = self.log_prior(theta)
+        out = np.full(theta.shape[0], -np.inf)
+        ok = np.isfinite(lp)
+        if ok.any():
+            ll = self.log_likelihood(theta[ok])
+            out[ok] = np.where(np.isfinite(ll), lp[ok] + ll, -np.inf)
+        return out
+
+    __call__ = log_posterior
+
+    # -- derived quantities ------------------------------------------------------
+
+    def derived(self, theta):
+        """Per-stage derived quantities {name: (B,)}: n (Eq. 18), eps, cds, t_f, t_fp."""
+        theta = np.atleast_2d(theta)
+        stage = self.gather_stages(theta)
+        _, timing = self.drag_areas(stage, self.obs.time[:1])
+        out = {}
+        for i, p in enumerate(self.parachutes):
+            for k in range(len(p.stages)):
+                pre = f"{p.id}.{_stage_names(k)}"
+                out[f"{pre}.n"] = timing.n[:, i, k]
+                out[f"{pre}.eps"] = stage["eps"][:, i, k]
+                out[f"{pre}.cds"] = stage["cds_stage"][:, i, k]
+                out[f"{pre}.t_f"] = timing.t_f[:, i, k]
+                out[f"{pre}.t_fp"] = timing.t_fp[:, i, k]
+        return out

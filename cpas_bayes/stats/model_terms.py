@@ -1,0 +1,205 @@
+"""Terms added to the baseline model to explain what it gets wrong.
+
+Each extension is a :class:`cpas_bayes.stats.model.Extension`: it declares its
+parameters with priors and plugs into one hook of the model's pipeline, so the
+baseline is never copied. The physics is the same as the simulator's
+(:mod:`cpas_bayes.physics.effects`), so a fitted term means what a simulated one did.
+
+``added_mass`` — enclosed + apparent air mass (both channels)
+    m_a,i = k_a·ρ·CDS_i^(3/2); both reduction channels then show
+    CDS_i + d(m_a,i·V)/dt / q̄ with d(m_a·V)/dt = ṁ_a·V + m_a·dV/dt
+    (effects Eq. A1–A4). V is the measured (smoothed) airspeed; dV/dt comes
+    from the momentum balance Eq. A3 with the model's drag areas and added
+    mass; dCDS_i/dt is differenced from the stage law. Prior: k_a
+    lognormal, median 0.3, factor-e spread, 0.005–5.
+
+``friction_drift`` — load-cell friction factor changing in time (load cells only)
+    s(t) = s + Δs·(clip((t − t_a)/(t_b − t_a), 0, 1) − ½), t_a the first
+    nominal stage start, t_b the end of the record; ``load_scale`` stays the
+    mean factor. Prior: Δs ~ N(0, 0.08) (the seed's Drogues moved by 0.05).
+
+``sensor_lag`` — load cells behind the IMU time base (load cells only)
+    The load cell at t shows the riser at t − δ. Prior: δ ~ N(0, 0.1 s)
+    truncated to [−0.2, 0.3] s.
+
+``canopy_breathing`` — damped oscillation of each canopy after its peak (both)
+    CDS_i(t)·[1 + A·exp(−ζωτ)·sin(ω·sqrt(1−ζ²)·τ)], τ the time since the
+    current stage's peak drag area, ω = 2πf. Priors: A ~ U(0, 0.25);
+    f lognormal around 1.2 Hz (Drogue) or 0.35 Hz (Main), spread factor 1.8;
+    ζ ~ U(0.01, 0.6).
+
+``correlated_noise`` — AR(1) errors, the generic alternative
+    The baseline's errors whitened per bin, z_t = Σ_t^(−½)·e_t (channels and the
+    shared q̄ error included, :meth:`TestModel.whitened_residuals`), follow
+    z_t = φ_t·z_{t−1} + √(1−φ_t²)·ξ_t with φ_t = exp(−Δt_t/τ_c) between
+    consecutive bins (an Ornstein–Uhlenbeck process, so bins of different
+    widths are handled). The pointwise log-likelihood is the conditional
+    log p(y_t | y_{t−1}) — the AR-conditional form that PSIS-LOO can use on
+    correlated samples; its sum is the joint likelihood and at τ_c → 0 it is
+    the baseline's, bin by bin. A physical cause must beat this to be named.
+    Prior: τ_c lognormal, median 0.05 s, spread factor e^1.5, 0.001–5 s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cpas_bayes.physics.effects import (added_mass, added_mass_acceleration, added_mass_momentum_rate, added_mass_rate,
+                      breathing_factor)
+from cpas_bayes.stats.model import Extension, Parameter
+from cpas_bayes.stats.priors import LogNormal, Normal, TruncNormal, Uniform
+from cpas_bayes.core.units import STANDARD_GRAVITY
+
+_LOG_2PI = math.log(2.0 * math.pi)
+_DERIVATIVE_STEP = 1e-3  # s, central difference of the stage law
+
+
+class AddedMass(Extension):
+    name = "added_mass"
+    practical_floor = ("k_a", 0.05)   # below: < 1/4 of the smallest added mass the Drogue tests suggest
+
+    def parameters(self, model):
+        obs = model.obs
+        self._density_rate = np.gradient(obs.native_density, obs.native_time)
+        return [Parameter("k_a", LogNormal(0.3, 1.0, 0.005, 5.0), "", self.name)]
+
+    def start_points(self, model):
+        return [{"k_a": 0.02}, {"k_a": 0.5}]   # nearly absent, and a typical Drogue value
+
+    def apparent_drag_area(self, ctx, t):
+        model, obs = ctx.model, ctx.model.obs
+        k_a = ctx.values["k_a"][:, None, None]
+        tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]      # (1 or B, 1, N)
+        cds_plus, _ = model.drag_areas(ctx.stage, tt + _DERIVATIVE_STEP)
+        cds_minus, _ = model.drag_areas(ctx.stage, tt - _DERIVATIVE_STEP)
+        cds = 0.5 * (cds_plus + cds_minus)
+        cds_rate = (cds_plus - cds_minus) / (2 * _DERIVATIVE_STEP)
+        rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
+        mass = added_mass(cds, rho, k_a)
+        rate = added_mass_rate(cds, cds_rate, rho, np.interp(tt, obs.native_time, self._density_rate), k_a)
+        # dV/dt from the system's momentum balance (effects Eq. A3) with the model's own
+        # drag areas: differencing the measured airspeed would turn its noise into
+        # m_a·dV/dt errors far larger than the effect on a Main.
+        total_weight = (ctx.values["vehicle_weight"] + model.chute_weight.sum())[:, None]
+        accel = added_mass_acceleration(qbar[:, 0], cds.sum(axis=1), ctx.values["vehicle_cds"][:, None],
+                                        total_weight, obs.gamma_at(tt)[:, 0], speed[:, 0], mass.sum(axis=1),
+                                        rate.sum(axis=1), STANDARD_GRAVITY)
+        return added_mass_momentum_rate(mass, rate, speed, accel[:, None, :]) / qbar
+
+
+class FrictionDrift(Extension):
+    name = "friction_drift"
+    practical_floor = ("load_scale_change", 0.015)   # 1.5 % of the load; clean Mains fit up to 0.6 %
+
+    def parameters(self, model):
+        starts = [s.start for p in model.parachutes for s in p.stages]
+        self._t_a = min(starts)
+        self._t_b = float(model.obs.native_time[-1])
+        return [Parameter("load_scale_change", Normal(0.0, 0.08), "", self.name)]
+
+    def start_points(self, model):
+        return [{"load_scale_change": 0.0}]      # the likelihood is nearly quadratic in it
+
+    def friction_factor(self, ctx, t):
+        frac = np.clip((np.asarray(t) - self._t_a) / (self._t_b - self._t_a), 0.0, 1.0)
+        change = ctx.values["load_scale_change"][:, None]
+        return ctx.values["load_scale"][:, None] + change * (frac[None, :] - 0.5)
+
+
+class SensorLag(Extension):
+    name = "sensor_lag"
+    practical_floor = ("lag", 0.010)   # one 100 Hz sample: clean bundles of two simulators fit 2–4 ms
+
+    def parameters(self, model):
+        return [Parameter("lag", TruncNormal(0.0, 0.1, -0.2, 0.3), "s", self.name)]
+
+    def start_points(self, model):
+        return [{"lag": 0.0}, {"lag": 0.05}]
+
+    def load_cell_lag(self, ctx):
+        return ctx.values["lag"]
+
+
+BREATHING_FREQUENCY = {"drogue": 1.2, "pilot": 1.5, "fbcp": 1.5, "main": 0.35}  # Hz, prior medians
+
+
+class CanopyBreathing(Extension):
+    name = "canopy_breathing"
+    practical_floor = ("breathing_amplitude", 0.01)   # a 1 % ring of the drag area
+
+    def __init__(self, frequency_guess=None):
+        self.frequency_guess = frequency_guess
+
+    def parameters(self, model):
+        kinds = {p.kind for p in model.parachutes}
+        median = float(np.exp(np.mean([math.log(BREATHING_FREQUENCY[k]) for k in kinds])))
+        return [Parameter("breathing_amplitude", Uniform(0.0, 0.25), "", self.name),
+                Parameter("breathing_frequency", LogNormal(median, 0.6, 0.05, 5.0), "Hz", self.name),
+                Parameter("breathing_damping", Uniform(0.01, 0.6), "", self.name)]
+
+    def initial_values(self, model):
+        return {"breathing_frequency": self.frequency_guess} if self.frequency_guess else {}
+
+    def start_points(self, model):
+        # A small ring at the guessed frequency (the residuals' periodogram peak), and one
+        # at the prior median frequency in case the guess picked noise.
+        median = model.parameters[model.index["breathing_frequency"]].prior.ppf(0.5)
+        frequencies = [self.frequency_guess, median] if self.frequency_guess else [median]
+        return [{"breathing_amplitude": 0.05, "breathing_frequency": f, "breathing_damping": 0.15}
+                for f in frequencies]
+
+    def reshape_drag_area(self, ctx, cds, t):
+        stage = ctx.stage
+        timing = stage["timing"]
+        peak = stage["start"] + timing.t_fp                        # (B, P, K)
+        tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]
+        # The stage active at each time: the last one whose start has passed.
+        started = stage["start"][..., :, None] <= tt[..., None, :]      # (B, P, K, N)
+        active = started.sum(axis=-2) - 1                                # (B, P, N), −1 before bag strip
+        peak_active = np.take_along_axis(peak, np.clip(active, 0, None), axis=-1)
+        tau = np.where(active >= 0, tt - peak_active, -1.0)
+        v = ctx.values
+        factor = breathing_factor(tau, v["breathing_amplitude"][:, None, None],
+                                  v["breathing_frequency"][:, None, None], v["breathing_damping"][:, None, None])
+        return cds * factor
+
+
+class CorrelatedNoise(Extension):
+    name = "correlated_noise"
+
+    def parameters(self, model):
+        self._gap = np.diff(model.obs.time, prepend=model.obs.time[0] - np.median(np.diff(model.obs.time)))
+        return [Parameter("ar_time", LogNormal(0.05, 1.5, 0.001, 5.0), "s", self.name)]
+
+    def start_points(self, model):
+        return [{"ar_time": 0.05}, {"ar_time": 0.5}]
+
+    def log_likelihood(self, ctx, pred, obs):
+        phi = np.exp(-self._gap[None, :] / ctx.values["ar_time"][:, None])          # (B, N)
+        phi[:, 0] = 0.0                                                              # first bin: unconditional
+        innovation_var = 1.0 - phi**2
+        z, log_det = ctx.model.whitened_residuals(ctx.theta, pred)                  # (B, C, N), (B, N)
+        return (_ar1_conditional(z, phi[:, None, :], innovation_var[:, None, :]).sum(axis=1)
+                - 0.5 * log_det)
+
+
+def _ar1_conditional(e, phi, innovation_var):
+    """log N(e_t | φ_t·e_{t−1}, 1 − φ_t²) in standardised units, per bin."""
+    previous = np.concatenate([np.zeros_like(e[..., :1]), e[..., :-1]], axis=-1)
+    resid = e - phi * previous
+    return -0.5 * (resid**2 / innovation_var + np.log(innovation_var) + _LOG_2PI)
+
+
+EXTENSIONS = {cls.name: cls for cls in (AddedMass, FrictionDrift, SensorLag, CanopyBreathing, CorrelatedNoise)}
+PHYSICAL = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
+
+
+def make_extension(name, **options):
+    """An extension by name (``added_mass``, ``friction_drift``, ``sensor_lag``, ``canopy_breathing``,
+    ``correlated_noise``)."""
+    try:
+        return EXTENSIONS[name](**options)
+    except KeyError:
+        raise ValueError(f"unknown extension {name!r}; use one of {', '.join(EXTENSIONS)}") from None

@@ -1,0 +1,429 @@
+"""Prior distributions read from readable TOML files (``priors/<kind>.toml``).
+
+A prior is an object with vectorised ``logpdf``, ``ppf`` and ``sample``, and
+its support ``(low, high)``. Families:
+
+===============  =====================================  ==========================
+family           numbers                                density
+===============  =====================================  ==========================
+``uniform``      ``low, high``                          1/(high − low)
+``normal``       ``mu, sigma``                          N(mu, sigma²)
+``truncnormal``  ``mu, sigma, low, high``               N(mu, sigma²) cut to [low, high]
+``lognormal``    ``median, sigma_log`` [``low, high``]  log x ~ N(log median, sigma_log²), optionally cut
+===============  =====================================  ==========================
+
+A kind file holds one table per stage role, plus ``[parachute]`` for per-canopy
+quantities::
+
+    kind = "drogue"
+    [parachute]
+    cd_o = { family = "truncnormal", mu = 0.6, sigma = 0.12, low = 0.3, high = 1.0 }
+    [first]        # the stage that starts at bag strip
+    n_p = { family = "lognormal", median = 10.0, sigma_log = 0.5, low = 2, high = 40 }
+    [reefed]       # a later reefed stage, after a disreef
+    [full_open]    # the last stage
+
+Stage roles: a parachute's first stage is ``first``; its last is ``full_open``;
+stages between are ``reefed``. A one-stage parachute uses ``full_open``.
+Values that a stage does not have (``eps`` of the full-open stage, which is 1;
+``ck``/``tk`` of a finite-mass stage) are not sampled.
+
+``priors/nuisance.toml`` holds the per-test nuisances (load-cell friction
+factor, error multipliers). Start times, vehicle weight and vehicle drag area
+get normal priors from the bundle's own stated values and sigmas.
+
+A user's ``--priors FILE`` has the same layout; every table it gives replaces
+the default entry of the same name (other entries stay).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numba
+import numpy as np
+from scipy import special, stats
+
+from cpas_bayes.core.errors import InputError
+
+PRIORS_DIR = Path(__file__).parent.parent / "data" / "priors"
+ROLES = ("first", "reefed", "full_open")
+STAGE_PARAMETERS = ("n_p", "expopen", "ck", "tk", "eps")
+PARACHUTE_PARAMETERS = ("cd_o",)
+
+_SQRT2 = math.sqrt(2.0)
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def _std_normal_logcdf_diff(a, b):
+    """log(Φ(b) − Φ(a)) for a < b, stable in both tails."""
+    if a > 0:  # upper tail: use symmetry
+        a, b = -b, -a
+    return float(np.log(special.ndtr(b) - special.ndtr(a)))
+
+
+@dataclass(frozen=True)
+class Prior:
+    """A one-dimensional prior. Subclasses define the density; all methods are vectorised."""
+
+    @property
+    def support(self):
+        return (-np.inf, np.inf)
+
+    def _in_support(self, x):
+        low, high = self.support
+        return (x >= low) & (x <= high)
+
+    def logpdf(self, x):
+        raise NotImplementedError
+
+    def ppf(self, u):
+        raise NotImplementedError
+
+    def sample(self, rng, size=None):
+        """Draws by inverse transform, so any Generator seed reproduces them."""
+        return self.ppf(rng.uniform(size=size))
+
+    def describe(self):
+        """The TOML-table form of this prior."""
+        raise NotImplementedError
+
+    def scaled(self, factor):
+        """The prior of ``factor · x`` (factor > 0), e.g. CDS_o = C_D,o · S_o."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Uniform(Prior):
+    low: float
+    high: float
+
+    @property
+    def support(self):
+        return (self.low, self.high)
+
+    def logpdf(self, x):
+        x = np.asarray(x, float)
+        return np.where(self._in_support(x), -math.log(self.high - self.low), -np.inf)
+
+    def ppf(self, u):
+        return self.low + (self.high - self.low) * np.asarray(u, float)
+
+    def describe(self):
+        return {"family": "uniform", "low": self.low, "high": self.high}
+
+    def scaled(self, factor):
+        return Uniform(self.low * factor, self.high * factor)
+
+
+@dataclass(frozen=True)
+class Normal(Prior):
+    mu: float
+    sigma: float
+
+    def logpdf(self, x):
+        z = (np.asarray(x, float) - self.mu) / self.sigma
+        return -0.5 * z * z - math.log(self.sigma) - _LOG_SQRT_2PI
+
+    def ppf(self, u):
+        return self.mu + self.sigma * special.ndtri(np.asarray(u, float))
+
+    def describe(self):
+        return {"family": "normal", "mu": self.mu, "sigma": self.sigma}
+
+    def scaled(self, factor):
+        return Normal(self.mu * factor, self.sigma * factor)
+
+
+@dataclass(frozen=True)
+class TruncNormal(Prior):
+    mu: float
+    sigma: float
+    low: float
+    high: float
+
+    @property
+    def support(self):
+        return (self.low, self.high)
+
+    @property
+    def _log_mass(self):
+        return _std_normal_logcdf_diff((self.low - self.mu) / self.sigma, (self.high - self.mu) / self.sigma)
+
+    def logpdf(self, x):
+        x = np.asarray(x, float)
+        z = (x - self.mu) / self.sigma
+        inside = -0.5 * z * z - math.log(self.sigma) - _LOG_SQRT_2PI - self._log_mass
+        return np.where(self._in_support(x), inside, -np.inf)
+
+    def ppf(self, u):
+        a, b = (self.low - self.mu) / self.sigma, (self.high - self.mu) / self.sigma
+        return stats.truncnorm.ppf(np.asarray(u, float), a, b, loc=self.mu, scale=self.sigma)
+
+    def describe(self):
+        return {"family": "truncnormal", "mu": self.mu, "sigma": self.sigma, "low": self.low, "high": self.high}
+
+    def scaled(self, factor):
+        return TruncNormal(self.mu * factor, self.sigma * factor, self.low * factor, self.high * factor)
+
+
+@dataclass(frozen=True)
+class LogNormal(Prior):
+    median: float
+    sigma_log: float
+    low: float = 0.0
+    high: float = math.inf
+
+    @property
+    def support(self):
+        return (self.low, self.high)
+
+    @property
+    def _log_mass(self):
+        mu = math.log(self.median)
+        a = -np.inf if self.low <= 0 else (math.log(self.low) - mu) / self.sigma_log
+        b = np.inf if math.isinf(self.high) else (math.log(self.high) - mu) / self.sigma_log
+        return _std_normal_logcdf_diff(a, b)
+
+    def logpdf(self, x):
+        x = np.asarray(x, float)
+        inside = self._in_support(x) & (x > 0)
+        safe = np.where(inside, x, 1.0)
+        z = (np.log(safe) - math.log(self.median)) / self.sigma_log
+        value = -0.5 * z * z - np.log(safe) - math.log(self.sigma_log) - _LOG_SQRT_2PI - self._log_mass
+        return np.where(inside, value, -np.inf)
+
+    def ppf(self, u):
+        mu = math.log(self.median)
+        a = -np.inf if self.low <= 0 else (math.log(self.low) - mu) / self.sigma_log
+        b = np.inf if math.isinf(self.high) else (math.log(self.high) - mu) / self.sigma_log
+        lo, hi = special.ndtr(a), special.ndtr(b)
+        z = special.ndtri(lo + (hi - lo) * np.asarray(u, float))
+        return np.exp(mu + self.sigma_log * z)
+
+    def describe(self):
+        out = {"family": "lognormal", "median": self.median, "sigma_log": self.sigma_log}
+        if self.low > 0:
+            out["low"] = self.low
+        if not math.isinf(self.high):
+            out["high"] = self.high
+        return out
+
+    def scaled(self, factor):
+        return LogNormal(self.median * factor, self.sigma_log, self.low * factor, self.high * factor)
+
+
+_FAMILIES = {
+    "uniform": (Uniform, ("low", "high"), ()),
+    "normal": (Normal, ("mu", "sigma"), ()),
+    "truncnormal": (TruncNormal, ("mu", "sigma", "low", "high"), ()),
+    "lognormal": (LogNormal, ("median", "sigma_log"), ("low", "high")),
+}
+
+
+def prior_from_table(table, file, key):
+    """Build a :class:`Prior` from a TOML inline table; refuse with file, key and fix."""
+    if not isinstance(table, dict) or "family" not in table:
+        raise InputError(file, f"key '{key}'", "a prior must be a table with a 'family'",
+                         'write e.g. { family = "normal", mu = 1.0, sigma = 0.1 }')
+    family = table["family"]
+    if family not in _FAMILIES:
+        raise InputError(file, f"key '{key}.family'", f"unknown family {family!r}",
+                         f"use one of {', '.join(_FAMILIES)}")
+    cls, required, optional = _FAMILIES[family]
+    extra = set(table) - set(required) - set(optional) - {"family"}
+    if extra:
+        raise InputError(file, f"key '{key}'", f"unexpected numbers {sorted(extra)} for a {family} prior",
+                         f"give exactly {', '.join(required)}" + (f" (optional {', '.join(optional)})" if optional else ""))
+    values = {}
+    for name in required + optional:
+        if name not in table:
+            if name in required:
+                raise InputError(file, f"key '{key}.{name}'", f"missing for a {family} prior", f"add {name} = <number>")
+            continue
+        v = table[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v):
+            raise InputError(file, f"key '{key}.{name}'", f"must be a number, got {v!r}", f"write {name} = <number>")
+        values[name] = float(v)
+    for scale in ("sigma", "sigma_log", "median"):
+        if scale in values and values[scale] <= 0:
+            raise InputError(file, f"key '{key}.{scale}'", f"must be positive, got {values[scale]}",
+                             f"give {scale} > 0")
+    if "low" in values and "high" in values and not values["low"] < values["high"]:
+        raise InputError(file, f"key '{key}'", f"low ({values['low']}) must be below high ({values['high']})",
+                         "swap or correct the bounds")
+    return cls(**values)
+
+
+def _load_toml(path):
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "", "prior file not found", "pass an existing TOML file to --priors")
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, "", f"not valid TOML ({exc})", "correct the TOML syntax") from None
+
+
+@dataclass(frozen=True)
+class KindPriors:
+    """Priors of one parachute kind: per role and parameter, plus per-canopy ones."""
+
+    kind: str
+    stage: dict        # role -> {parameter -> Prior}
+    parachute: dict    # parameter -> Prior
+    source: tuple      # files read, in order
+
+    def for_stage(self, role, parameter):
+        return self.stage[role][parameter]
+
+
+@dataclass(frozen=True)
+class NuisancePriors:
+    """Per-test nuisances: {name -> Prior}."""
+
+    priors: dict
+    source: tuple
+
+    def __getitem__(self, name):
+        return self.priors[name]
+
+
+def _merge_kind(doc, file, base=None):
+    stage = {r: dict(base.stage[r]) if base else {} for r in ROLES}
+    chute = dict(base.parachute) if base else {}
+    for role in ROLES:
+        for name, table in doc.get(role, {}).items():
+            if name not in STAGE_PARAMETERS:
+                raise InputError(file, f"key '{role}.{name}'", "unknown stage parameter",
+                                 f"use one of {', '.join(STAGE_PARAMETERS)}")
+            stage[role][name] = prior_from_table(table, file, f"{role}.{name}")
+    for name, table in doc.get("parachute", {}).items():
+        if name not in PARACHUTE_PARAMETERS:
+            raise InputError(file, f"key 'parachute.{name}'", "unknown parachute parameter",
+                             f"use one of {', '.join(PARACHUTE_PARAMETERS)}")
+        chute[name] = prior_from_table(table, file, f"parachute.{name}")
+    unknown = set(doc) - set(ROLES) - {"parachute", "kind", "description", "nuisance"}
+    if unknown:
+        raise InputError(file, f"key '{sorted(unknown)[0]}'", "unknown table in a prior file",
+                         f"use kind, description, parachute, nuisance or a role ({', '.join(ROLES)})")
+    return stage, chute
+
+
+def load_kind_priors(kind, override=None):
+    """Priors for parachute ``kind`` from ``priors/<kind>.toml``, with a user's override file merged."""
+    path = PRIORS_DIR / f"{kind}.toml"
+    doc = _load_toml(path)
+    stage, chute = _merge_kind(doc, path)
+    sources = [str(path)]
+    base = KindPriors(kind, stage, chute, tuple(sources))
+    if override is not None:
+        odoc = _load_toml(override)
+        okind = odoc.get("kind")
+        if okind is not None and okind != kind:
+            return base  # the override file speaks of another kind
+        stage, chute = _merge_kind(odoc, override, base)
+        sources.append(str(override))
+    missing = [(r, p) for r in ROLES for p in ("n_p", "expopen") if p not in stage[r]]
+    missing += [(r, "eps") for r in ("first", "reefed") if "eps" not in stage[r]]
+    if "cd_o" not in chute:
+        missing.append(("parachute", "cd_o"))
+    if missing:
+        r, p = missing[0]
+        raise InputError(sources[-1], f"key '{r}.{p}'", "no prior for this parameter", f"add [{r}] {p} = {{...}}")
+    return KindPriors(kind, stage, chute, tuple(sources))
+
+
+def load_nuisance_priors(override=None):
+    """Per-test nuisance priors from ``priors/nuisance.toml`` (and an override's [nuisance] table)."""
+    path = PRIORS_DIR / "nuisance.toml"
+    doc = _load_toml(path).get("nuisance", {})
+    priors = {k: prior_from_table(v, path, f"nuisance.{k}") for k, v in doc.items()}
+    sources = [str(path)]
+    if override is not None:
+        odoc = _load_toml(override).get("nuisance", {})
+        priors.update({k: prior_from_table(v, override, f"nuisance.{k}") for k, v in odoc.items()})
+        if odoc:
+            sources.append(str(override))
+    return NuisancePriors(priors, tuple(sources))
+
+
+def stage_role(index, n_stages):
+    """Role of stage ``index`` of a parachute with ``n_stages`` stages."""
+    if index == n_stages - 1:
+        return "full_open"
+    return "first" if index == 0 else "reefed"
+
+
+class PriorSet:
+    """Independent priors of a parameter vector, evaluated for a batch at once.
+
+    ``logpdf(theta)`` with θ (B, D) returns (B,) in one compiled pass over the
+    rows (the sampler's hot path: grouped numpy operations per family cost as
+    much as a whole small likelihood). The sum of each prior's own ``logpdf``
+    is the reference it is tested against.
+    """
+
+    # family codes of the compiled form
+    _UNIFORM, _NORMAL, _LOGNORMAL = 0, 1, 2
+
+    def __init__(self, priors):
+        self.priors = list(priors)
+        for p in self.priors:
+            _log_normaliser(p)  # refuses a family without a batched form
+        self.family = np.array([self._UNIFORM if type(p) is Uniform else self._LOGNORMAL if type(p) is LogNormal
+                                else self._NORMAL for p in self.priors], dtype=np.int64)
+        # normal: (x − mu)/sigma; lognormal: (log x − log median)/sigma_log
+        self.loc = np.array([0.0 if f == self._UNIFORM else math.log(p.median) if f == self._LOGNORMAL else p.mu
+                             for f, p in zip(self.family, self.priors)])
+        self.scale = np.array([1.0 if f == self._UNIFORM else p.sigma_log if f == self._LOGNORMAL else p.sigma
+                               for f, p in zip(self.family, self.priors)])
+        self.const = np.array([_log_normaliser(p) for p in self.priors])
+        self.low = np.array([p.support[0] for p in self.priors], dtype=float)
+        self.high = np.array([p.support[1] for p in self.priors], dtype=float)
+
+    def logpdf(self, theta):
+        theta = np.ascontiguousarray(np.atleast_2d(np.asarray(theta, float)))
+        out = np.empty(theta.shape[0])
+        _prior_set_kernel(theta, self.family, self.loc, self.scale, self.low, self.high, self.const, out)
+        return out
+
+
+@numba.njit(cache=True)
+def _prior_set_kernel(theta, family, loc, scale, low, high, const, out):
+    """Σ_j log p_j(θ_bj) per row into ``out``, −inf outside any support (NaN is outside)."""
+    B, D = theta.shape
+    for b in range(B):
+        total = 0.0
+        for j in range(D):
+            x = theta[b, j]
+            if not (x >= low[j] and x <= high[j]):
+                total = -np.inf
+                break
+            if family[j] == 1:
+                z = (x - loc[j]) / scale[j]
+                total += -0.5 * z * z + const[j]
+            elif family[j] == 2:
+                log_x = np.log(x) if x > 0.0 else 0.0
+                z = (log_x - loc[j]) / scale[j]
+                total += -0.5 * z * z - log_x + const[j]
+            else:
+                total += const[j]
+        out[b] = total
+
+
+def _log_normaliser(prior):
+    """The x-independent part of log p(x) inside the support."""
+    if isinstance(prior, Uniform):
+        return -math.log(prior.high - prior.low)
+    if isinstance(prior, LogNormal):
+        return -math.log(prior.sigma_log) - _LOG_SQRT_2PI - prior._log_mass
+    if isinstance(prior, TruncNormal):
+        return -math.log(prior.sigma) - _LOG_SQRT_2PI - prior._log_mass
+    if isinstance(prior, Normal):
+        return -math.log(prior.sigma) - _LOG_SQRT_2PI
+    raise TypeError(f"no batched form for {type(prior).__name__}")
