@@ -8,7 +8,8 @@ from scipy import stats
 
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.stats.priors import (PRIORS_DIR, LogNormal, Normal, PriorSet, TruncNormal, Uniform, load_kind_priors,
-                               load_nuisance_priors, prior_from_table, stage_role)
+                               load_nuisance_priors, prior_from_table)
+from cpas_bayes.physics.inflation import stage_role
 
 PRIORS = [
     (Uniform(0.1, 0.9), stats.uniform(0.1, 0.8)),

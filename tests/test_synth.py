@@ -10,7 +10,7 @@ import pytest
 
 from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle, write_bundle
 from cpas_bayes.app.cli import main
-from cpas_bayes.core.files import save_figure
+from cpas_bayes.outputs.figures import save_figure
 from cpas_bayes.data.synth import (EFFECT_MAGNITUDE_RANGE, EFFECTS, draw_effect_params, draw_truth,
                               load_cell_readings, n_p_consistency, noise_free_drag_areas, random_streams,
                               simulate_test, simulate_truth, synthesize, truth_from_bundle, write_synthetic)

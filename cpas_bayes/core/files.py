@@ -86,24 +86,6 @@ def write_csv(target, frame, **kwargs):
         frame.to_csv(tmp, index=False, **kwargs)
 
 
-def save_figure(fig, target, **kwargs):
-    """Save a matplotlib figure atomically (format from the target's suffix)."""
-    target = Path(target)
-    with atomic_path(target) as tmp:
-        fig.savefig(tmp, format=target.suffix.lstrip(".") or "png", **kwargs)
-
-
-def write_json_and_figure(json_target, doc, figure_target, fig, dpi=110):
-    """Write a JSON document and a matplotlib figure atomically, then close the figure."""
-    import matplotlib.pyplot as plt
-
-    try:
-        write_json(json_target, doc)
-        save_figure(fig, figure_target, dpi=dpi)
-    finally:
-        plt.close(fig)
-
-
 @contextlib.contextmanager
 def atomic_directory(target):
     """Yield a temporary folder beside ``target``; on success it replaces ``target`` whole."""

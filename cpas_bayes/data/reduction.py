@@ -138,7 +138,8 @@ from scipy.signal import savgol_coeffs, savgol_filter
 
 from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.files import save_figure, write_csv, write_json
+from cpas_bayes.core.files import write_csv, write_json
+from cpas_bayes.outputs.figures import save_figure
 
 SCALE_MODES = ("constant", "linear")
 DEFAULT_PEAK_SMOOTHING = 0.1   # s, quadratic-filter width before taking a maximum

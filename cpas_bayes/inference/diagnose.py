@@ -759,7 +759,8 @@ def write_diagnosis(d: Diagnosis, out):
     """Write ``diagnosis.json``, ``diagnosis.md``, the tables and the figures into ``out``."""
     import matplotlib.pyplot as plt
 
-    from cpas_bayes.core.files import save_figure, write_csv, write_json, write_text
+    from cpas_bayes.core.files import write_csv, write_json, write_text
+    from cpas_bayes.outputs.figures import save_figure
     from cpas_bayes.outputs.plots import diagnose as figs
     from cpas_bayes.outputs.plots.fit import plot_loo_pit, plot_ppc, plot_residuals
 

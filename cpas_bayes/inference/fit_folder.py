@@ -35,19 +35,13 @@ import xarray as xr
 
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import atomic_path, write_json
+from cpas_bayes.physics.inflation import stage_key
 from cpas_bayes.stats.priors import prior_from_table
 
 SUMMARY_NAME = "summary.json"
 POSTERIOR_NAME = "posterior.nc"
 QUANTILES = (0.05, 0.5, 0.95)
 STAGE_FIELDS = ("start", "n_p", "n", "expopen", "ck", "tk", "cds", "eps")
-
-
-def stage_key(index, n_stages):
-    """Stage identity shared across tests for pooling: ``first``, ``reefed1``…, ``full_open``."""
-    if index == n_stages - 1:
-        return "full_open"
-    return "first" if index == 0 else f"reefed{index}"
 
 
 def describe_draws(x):

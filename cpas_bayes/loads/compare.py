@@ -56,7 +56,7 @@ from scipy import special
 
 from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.files import write_json_and_figure
+from cpas_bayes.outputs.figures import write_json_and_figure
 from cpas_bayes.population.memo import Memo
 from cpas_bayes.loads.montecarlo import (ClusterLayout, MonteCarloResult, assemble_inputs, choose_engine, describe,
                          ensure_compiled, json_safe, run_monte_carlo, simulate_runs)

@@ -115,10 +115,11 @@ from tqdm import tqdm
 
 from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.files import save_figure, write_csv, write_json, write_json_and_figure
+from cpas_bayes.core.files import write_csv, write_json
+from cpas_bayes.outputs.figures import save_figure, write_json_and_figure
 from cpas_bayes.physics.inflation import _stage_value
 from cpas_bayes.population.memo import DRAWS_NAME, MEMO_NAME, Memo
-from cpas_bayes.inference.fit_folder import stage_key
+from cpas_bayes.physics.inflation import stage_key, stage_tag
 from cpas_bayes.physics.trajectory import ClusterParameters, SimulationOptions, VehicleProperties, VehicleState0, simulate
 from cpas_bayes.core.units import UnitSystem
 
@@ -228,7 +229,7 @@ class ClusterLayout:
 
     def stage_tag(self, k):
         """Short column tag of (cluster or canopy) stage k: ``s1``, ``s2``…"""
-        return f"s{k + 1}"
+        return stage_tag(k)
 
 
 # ---------------------------------------------------------------------------

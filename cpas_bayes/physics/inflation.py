@@ -1,5 +1,10 @@
 """Drag-area growth of one parachute, stage by stage (the seed's §IV–VI).
 
+"The seed" throughout the package is the paper whose equations this module
+implements: E. S. Ray (Jacobs Engineering, Houston), "Reconstruction of Orion
+EDU Parachute Inflation Loads", AIAA conference paper. Equation, section and
+figure numbers cited anywhere in the package are that paper's.
+
 Pure numpy; every function broadcasts over leading batch axes (walkers, Monte
 Carlo runs) and over time.
 
@@ -49,6 +54,28 @@ from dataclasses import dataclass
 import numpy as np
 
 DECAY_SHAPES = ("linear", "exponential")
+
+
+# ---------------------------------------------------------------------------
+# Stage names: one scheme for priors, model parameters, fit summaries and the memo
+
+
+def stage_key(index, n_stages):
+    """Stage identity shared across tests (memo, pooling): ``first``, ``reefed1``…, ``full_open``."""
+    if index == n_stages - 1:
+        return "full_open"
+    return "first" if index == 0 else f"reefed{index}"
+
+
+def stage_role(index, n_stages):
+    """Which prior table a stage takes: ``first``, ``reefed`` or ``full_open`` (the key without its number)."""
+    return stage_key(index, n_stages).rstrip("0123456789")
+
+
+def stage_tag(index):
+    """Short name of stage ``index`` in parameter and column names: ``s1``, ``s2``…"""
+    return f"s{index + 1}"
+
 
 
 def fill_time(n, diameter, cds_start, cds_i, cds_o, v_i):

@@ -26,7 +26,7 @@ memo.toml layout::
 
     [drogue.parachute.cd_o]            # per-canopy quantities use stage key "parachute"
 
-Stage keys are those of :func:`cpas_bayes.inference.fit_folder.stage_key`: ``first``,
+Stage keys are those of :func:`cpas_bayes.physics.inflation.stage_key`: ``first``,
 ``reefed1``…, ``full_open``. Parameters: ``n_p``, ``n``, ``expopen``, ``ck``,
 ``tk``, ``eps`` per stage, ``cd_o`` per canopy, and ``t_fp`` (peak fill time
 seen in the tests, s; its ``bounds`` are the range the tests showed).

@@ -56,9 +56,9 @@ import numba
 import numpy as np
 
 from cpas_bayes.data.bundle import FlightTest
-from cpas_bayes.physics.inflation import DECAY_SHAPES, parachute_stage_law, cluster_drag_area
+from cpas_bayes.physics.inflation import DECAY_SHAPES, cluster_drag_area, parachute_stage_law, stage_role, stage_tag
 from cpas_bayes.stats.observations import Observations
-from cpas_bayes.stats.priors import KindPriors, Normal, NuisancePriors, PriorSet, TruncNormal, stage_role
+from cpas_bayes.stats.priors import KindPriors, Normal, NuisancePriors, PriorSet, TruncNormal
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -217,10 +217,6 @@ def _baseline_quadratic_form(theta, consts, gather, cds_o_index, diameter, n_sta
         out[b] = quad
 
 
-def _stage_names(k):
-    return f"s{k + 1}"
-
-
 class TestModel:
     """Parameters, priors and batched likelihood of one flight test.
 
@@ -285,7 +281,7 @@ class TestModel:
             n = len(p.stages)
             for k, st in enumerate(p.stages):
                 role = stage_role(k, n)
-                pre = f"{p.id}.{_stage_names(k)}"
+                pre = f"{p.id}.{stage_tag(k)}"
                 params.append(Parameter(f"{pre}.start", Normal(st.start, max(st.start_sigma, 1e-3)), "s"))
                 params.append(Parameter(f"{pre}.n_p", kp.for_stage(role, "n_p")))
                 params.append(Parameter(f"{pre}.expopen", kp.for_stage(role, "expopen")))
@@ -322,7 +318,7 @@ class TestModel:
             n = len(p.stages)
             for k in range(K):
                 kk = min(k, n - 1)  # pad short parachutes by repeating their last stage
-                pre = f"{p.id}.{_stage_names(kk)}"
+                pre = f"{p.id}.{stage_tag(kk)}"
                 self.stage_mask[i, k] = k < n
                 for name in gather:
                     key = f"{pre}.{name}"
@@ -581,7 +577,7 @@ class TestModel:
         out = {}
         for i, p in enumerate(self.parachutes):
             for k in range(len(p.stages)):
-                pre = f"{p.id}.{_stage_names(k)}"
+                pre = f"{p.id}.{stage_tag(k)}"
                 out[f"{pre}.n"] = timing.n[:, i, k]
                 out[f"{pre}.eps"] = stage["eps"][:, i, k]
                 out[f"{pre}.cds"] = stage["cds_stage"][:, i, k]

@@ -352,13 +352,6 @@ def load_nuisance_priors(override=None):
     return NuisancePriors(priors, tuple(sources))
 
 
-def stage_role(index, n_stages):
-    """Role of stage ``index`` of a parachute with ``n_stages`` stages."""
-    if index == n_stages - 1:
-        return "full_open"
-    return "first" if index == 0 else "reefed"
-
-
 class PriorSet:
     """Independent priors of a parameter vector, evaluated for a batch at once.
 

@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
 from cpas_bayes.inference import predictive_checks as chk  # noqa: E402
-from cpas_bayes.core.files import save_figure  # noqa: E402
+from cpas_bayes.outputs.figures import save_figure  # noqa: E402
 
 _ACC = "#1f9bd1"
 _MODEL = "#d95f02"

@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from cpas_bayes.core.files import save_figure  # noqa: E402
+from cpas_bayes.outputs.figures import save_figure  # noqa: E402
 
 _TEST = "#3b6ea5"        # per-test posteriors
 _POPULATION = "#c0392b"  # population predictive
