@@ -42,6 +42,7 @@ import numpy as np
 from scipy import optimize
 
 from cpas_bayes import __version__
+from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.bundle import example_bundles, read_bundle
 from cpas_bayes.inference.fit import SamplerOptions, first_guess, fit_model, prepare_model
 
@@ -72,7 +73,7 @@ def nelder_mead_point_fit(model, gain_tol=0.01, max_restarts=100):
 
 def bench_fit(path):
     test = read_bundle(path)
-    model = prepare_model(test)
+    model = prepare_model(test, reduce_test(test))
     model(first_guess(model)[None])  # compile outside the clocks
     nm = nelder_mead_point_fit(model)
     t0 = time.perf_counter()
@@ -85,6 +86,21 @@ def bench_fit(path):
             "converged": d["converged"], "map_log_post": fit.sampling.log_post_map,
             "nelder_mead": nm, "posterior_over_point_fit": wall / nm["converged_wall_s"],
             "posterior_over_single_nelder_mead": wall / nm["single_wall_s"]}
+
+
+def bench_diagnose(path, mode):
+    from dataclasses import replace
+
+    from cpas_bayes.inference.diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test
+
+    test = read_bundle(path)
+    t0 = time.perf_counter()
+    d = diagnose_test(test, DiagnoseOptions(mode=mode, sampler=replace(DIAGNOSIS_SAMPLER, progress=False)))
+    wall = time.perf_counter() - t0
+    return {"test": test.name, "mode": mode, "wall_s": wall, "cause": d.cause,
+            "candidates_sampled": sorted(d.candidates),
+            "elpd_diff": {r["name"]: r["elpd_diff"] for r in d.versus_baseline.to_dict("records")},
+            "summary": f"cause {d.cause}, {len(d.candidates)} candidates sampled"}
 
 
 def _main_memo():
@@ -110,7 +126,8 @@ def _main_memo():
 
 
 def _time_monte_carlo(runs, executor):
-    from cpas_bayes.loads.montecarlo import ensure_compiled, run_monte_carlo
+    from cpas_bayes.loads.montecarlo import run_monte_carlo
+    from cpas_bayes.physics.engine import ensure_compiled
 
     like = read_bundle(next(p for p in example_bundles() if p.name.startswith("main")))
     ensure_compiled()
@@ -140,7 +157,8 @@ def bench_parallel():
     from cpas_bayes.core.executor import Executor, ProcessExecutor
     from cpas_bayes.inference.fit import _ensemble_task, find_map, initial_walkers, laplace_covariance
 
-    model = prepare_model(read_bundle(next(p for p in example_bundles() if p.name.startswith("drogue"))))
+    test = read_bundle(next(p for p in example_bundles() if p.name.startswith("drogue")))
+    model = prepare_model(test, reduce_test(test))
     options = SamplerOptions(seed=0, n_ensembles=4, max_steps=2000, check_every=500, tau_factor=1e9,
                              progress=False)
     theta, _ = find_map(model, np.random.default_rng(0), 2)

@@ -6,6 +6,7 @@ function-scoped fixtures are not reset between hypothesis examples.
 
 from __future__ import annotations
 
+import os
 import shutil
 import tomllib
 from pathlib import Path
@@ -15,6 +16,9 @@ import pytest
 import tomli_w
 
 from cpas_bayes.data.bundle import CSV_NAME, EXAMPLES_DIR, TOML_NAME
+
+# Figures go to files in the tests, also where a display exists (the library never picks a backend).
+os.environ.setdefault("MPLBACKEND", "Agg")
 
 N_PER_LBF = 4.4482216152605
 M_PER_FT = 0.3048

@@ -1,4 +1,5 @@
-"""Posterior predictive checks, residual diagnostics and fit figures (cpas_bayes.inference.predictive_checks, plots.fit).
+"""Posterior predictive checks, residual diagnostics and fit figures (cpas_bayes.inference.predictive_checks,
+inference.residuals, outputs.plots.fit).
 
 One short fit of the clean two-Drogue example is shared by the module (the
 model is correct there); the wrong-model cases edit its observations after the
@@ -17,6 +18,7 @@ import pytest
 from scipy import stats
 
 from cpas_bayes.inference import predictive_checks as checks
+from cpas_bayes.inference import residuals as resid
 from cpas_bayes.data.bundle import example_bundles, read_bundle
 from cpas_bayes.inference.fit import SamplerOptions, fit_test
 
@@ -102,7 +104,7 @@ def test_shifted_load_cells_are_flagged_by_the_stage_means(drogue_fit):
     total_old = clean[clean["parachute"] == "total"]["p_value"].to_numpy()
     np.testing.assert_allclose(total_new, total_old)
     # and the standardised residuals of the load cells turn positive in the steady phases
-    report = checks.residuals(shifted)
+    report = resid.residuals(shifted)
     rows = report.table[report.table["channel"].str.startswith("load cell")
                         & report.table["phase"].isin(["steady", "full_open"])]
     assert (rows["mean"] > 1.0).all(), rows.to_string()
@@ -113,7 +115,7 @@ def test_injected_oscillation_shows_in_the_residual_autocorrelation(drogue_fit, 
     obs = drogue_fit.model.obs
     wave = 3.0 * np.hypot(obs.acc_sigma, getattr(obs, "acc_qbar", 0.0)) * np.sin(2 * np.pi * 0.8 * obs.time)
     wavy = _with_obs(drogue_fit, acc=obs.acc + wave)
-    report = checks.residuals(wavy)
+    report = resid.residuals(wavy)
 
     def row(table, channel, phase):
         return table[(table["channel"] == channel) & (table["phase"] == phase)].iloc[0]
@@ -137,7 +139,7 @@ def test_injected_oscillation_shows_in_the_residual_autocorrelation(drogue_fit, 
 def test_phase_classification_of_a_tiny_case():
     time = np.arange(0.0, 10.0, 0.5)
     starts, t_fp, t_k = np.array([2.0, 6.0]), np.array([1.0, 1.5]), np.array([1.0, 0.5])
-    got = checks.classify_phases(time, starts, t_fp, t_k, infinite=True)
+    got = resid.classify_phases(time, starts, t_fp, t_k, infinite=True)
     expected = (["pre_deploy"] * 4                 # 0.0 .. 1.5
                 + ["fill"] * 2                     # 2.0, 2.5   (< 2 + 1)
                 + ["overinflation"] * 2            # 3.0, 3.5   (< 2 + 1 + 1)
@@ -146,12 +148,12 @@ def test_phase_classification_of_a_tiny_case():
                 + ["overinflation"]                # 7.5        (< 6 + 1.5 + 0.5)
                 + ["full_open"] * 4)               # 8.0 .. 9.5
     assert list(got) == expected
-    finite = checks.classify_phases(time, starts, t_fp, t_k, infinite=False)
+    finite = resid.classify_phases(time, starts, t_fp, t_k, infinite=False)
     assert "overinflation" not in set(finite)
     assert list(finite[6:8]) == ["steady", "steady"]
 
-    other = checks.classify_phases(time, np.array([2.5, 7.0]), np.array([0.5, 0.5]), np.array([0.0, 0.0]))
-    cluster = checks.cluster_phases(np.array([got, other]))
+    other = resid.classify_phases(time, np.array([2.5, 7.0]), np.array([0.5, 0.5]), np.array([0.0, 0.0]))
+    cluster = resid.cluster_phases(np.array([got, other]))
     # pre_deploy only while both are; the most dynamic phase wins elsewhere
     assert list(cluster[:4]) == ["pre_deploy"] * 4
     assert cluster[list(time).index(2.5)] == "fill"
@@ -164,7 +166,7 @@ def test_ljung_box_matches_hand_computation():
     # Alternating series: mean 0, r_1 = −(n − 1)/n exactly.
     n = 10
     x = (-1.0) ** np.arange(n)
-    q, p, h = checks.ljung_box(x, lags=1)
+    q, p, h = resid.ljung_box(x, lags=1)
     r1 = -(n - 1) / n
     assert h == 1
     assert q == pytest.approx(n * (n + 2) * r1**2 / (n - 1))        # = 10.8
@@ -177,16 +179,16 @@ def test_ljung_box_matches_hand_computation():
     r = [np.sum(d[:-k] * d[k:]) / np.sum(d * d) for k in (1, 2, 3)]
     m = y.size
     q_hand = m * (m + 2) * sum(r[k - 1] ** 2 / (m - k) for k in (1, 2, 3))
-    q, p, h = checks.ljung_box(y, lags=3)
+    q, p, h = resid.ljung_box(y, lags=3)
     assert (q, h) == (pytest.approx(q_hand), 3)
     assert p == pytest.approx(stats.chi2.sf(q_hand, 3))
-    np.testing.assert_allclose(checks.autocorrelation(y, 3), r)
+    np.testing.assert_allclose(resid.autocorrelation(y, 3), r)
 
 
 def test_masked_autocorrelation_counts_only_pairs_inside_the_mask():
     x = np.array([5.0, 1.0, -1.0, 1.0, -1.0, 50.0, 1.0, -1.0])
     mask = np.array([False, True, True, True, True, False, True, True])
-    r1 = checks.autocorrelation(x, 1, mask)[0]
+    r1 = resid.autocorrelation(x, 1, mask)[0]
     vals = x[mask]
     d = vals - vals.mean()
     # in-mask adjacent pairs: (1,2), (2,3), (3,4), (6,7)
@@ -234,7 +236,7 @@ def test_loo_pit_and_pareto_k(drogue_fit, drogue_checks):
     assert np.allclose(pit.table["pit_sd"], 1 / np.sqrt(12), atol=0.03)
     res = drogue_checks.residuals
     assert res.pareto_k.shape == (n,)
-    assert res.elpd_loo["n_high_pareto_k"] == int(np.sum(res.pareto_k > checks.PARETO_K_LIMIT))
+    assert res.elpd_loo["n_high_pareto_k"] == int(np.sum(res.pareto_k > resid.PARETO_K_LIMIT))
     assert res.elpd_loo["n_high_pareto_k"] <= 0.02 * n
     for name in ("noise_acc", "noise_lc"):
         s = res.noise[name]

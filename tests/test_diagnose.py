@@ -18,8 +18,11 @@ import numpy as np
 import pytest
 import xarray as xr
 
+from cpas_bayes.inference import candidate_fits as cf
 from cpas_bayes.inference import diagnose as dg
+from cpas_bayes.inference import diagnosis_rule as rule
 from cpas_bayes.app.cli import main
+from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.inference.fit import prepare_model
 from cpas_bayes.data.synth import synthesize, truth_parameter_values, write_synthetic
 
@@ -43,7 +46,7 @@ def _candidate(name, elpd_i, size=None):
         posterior = {param: xr.DataArray(value + 0.01 * value * np.random.default_rng(0).standard_normal((2, 50)))}
     fit = SimpleNamespace(summary={"diagnostics": {"converged": True, "rhat_max": 1.0}},
                           model=SimpleNamespace(parameters=params), tree={"posterior": posterior})
-    return dg.CandidateFit(name=name, fit=fit, loo=loo, seconds=0.0)
+    return cf.CandidateFit(name=name, fit=fit, loo=loo, seconds=0.0)
 
 
 def _field(gains, n=400, seed=0, jitter=0.01):
@@ -56,10 +59,10 @@ def _field(gains, n=400, seed=0, jitter=0.01):
         bump = np.zeros(n)
         bump[100:140] = g / 40
         cands[name] = _candidate(name, base + bump + rng.normal(0, jitter, n))
-    return _candidate(dg.BASELINE, base), cands
+    return _candidate(cf.BASELINE, base), cands
 
 
-OPTIONS = dg.DiagnoseOptions()
+OPTIONS = cf.DiagnoseOptions()
 
 
 def _gains(**kw):
@@ -71,19 +74,19 @@ def _gains(**kw):
 
 def test_a_clear_physical_gain_is_named():
     base, cands = _field(_gains(sensor_lag=60.0, correlated_noise=15.0))
-    cause, reasons = dg.name_cause(base, cands, OPTIONS)
+    cause, reasons = rule.name_cause(base, cands, OPTIONS)
     assert cause == "sensor_lag"
     assert "beats AR(1)" in " ".join(reasons)
 
 
 def test_a_small_gain_names_nothing():
     base, cands = _field(_gains(sensor_lag=6.0))
-    assert dg.name_cause(base, cands, OPTIONS)[0] == "none"
+    assert rule.name_cause(base, cands, OPTIONS)[0] == "none"
 
 
 def test_a_term_that_does_not_beat_ar1_names_nothing():
     base, cands = _field(_gains(added_mass=40.0, correlated_noise=55.0))
-    cause, reasons = dg.name_cause(base, cands, OPTIONS)
+    cause, reasons = rule.name_cause(base, cands, OPTIONS)
     assert cause == "none"
     assert any("does not beat AR(1)" in r for r in reasons)
 
@@ -91,7 +94,7 @@ def test_a_term_that_does_not_beat_ar1_names_nothing():
 def test_two_physical_terms_that_explain_alike_name_nothing():
     # the same bins, explained alike up to bin-to-bin scatter
     base, cands = _field(_gains(added_mass=40.0, canopy_breathing=38.0), jitter=0.2)
-    cause, reasons = dg.name_cause(base, cands, OPTIONS)
+    cause, reasons = rule.name_cause(base, cands, OPTIONS)
     assert cause == "none"
     assert any("not clearly ahead" in r for r in reasons)
 
@@ -100,14 +103,14 @@ def test_a_negligible_fitted_size_names_nothing():
     """A real elpd gain from a lag of 2 ms (one 100 Hz sample is the floor) is not a cause."""
     base, cands = _field(_gains(sensor_lag=30.0))
     cands["sensor_lag"] = _candidate("sensor_lag", cands["sensor_lag"].pointwise_elpd, size=-0.002)
-    cause, reasons = dg.name_cause(base, cands, OPTIONS)
+    cause, reasons = rule.name_cause(base, cands, OPTIONS)
     assert cause == "none"
     assert any("practical floor" in r for r in reasons)
 
 
 def test_paired_difference_se_is_the_arviz_formula():
     base, cands = _field(_gains(sensor_lag=60.0))
-    diff, se = dg.paired_difference(cands["sensor_lag"], base)
+    diff, se = rule.paired_difference(cands["sensor_lag"], base)
     d = cands["sensor_lag"].pointwise_elpd - base.pointwise_elpd
     assert diff == pytest.approx(d.sum())
     assert se == pytest.approx(np.sqrt(d.size * d.var(ddof=1)))
@@ -119,17 +122,17 @@ def test_paired_difference_se_is_the_arviz_formula():
 @pytest.mark.parametrize("scenario,seed", [("drogue", 3), ("main", 4)])
 def test_breathing_frequency_is_read_off_the_baseline_residuals(scenario, seed):
     test, truth_doc = synthesize(scenario, "canopy_breathing", seed, magnitude=0.08)
-    model = prepare_model(test)
+    model = prepare_model(test, reduce_test(test))
     truth = truth_parameter_values(test, truth_doc)
     theta = np.array([truth.get(n, 1.0) for n in model.names])
-    guess = dg.breathing_frequency_guess(model, theta)
+    guess = cf.breathing_frequency_guess(model, theta)
     true_f = truth_doc["effect_params"]["frequency_hz"]
     assert guess == pytest.approx(true_f, rel=0.15)
 
 
 # -- end to end ----------------------------------------------------------------
 
-QUICK = replace(dg.DIAGNOSIS_SAMPLER, workers=1, progress=False)
+QUICK = replace(cf.DIAGNOSIS_SAMPLER, workers=1, progress=False)
 
 # (scenario, hidden effect, seed, mode): each seed draws its own truth and effect magnitude. Mode
 # "screen" (what a campaign runs) keeps the suite's time; one case and the CLI test run the full comparison.
@@ -146,14 +149,14 @@ NAMING_CASES = [
 @pytest.mark.parametrize("scenario,effect,seed,mode", NAMING_CASES)
 def test_diagnose_names_the_hidden_effect(scenario, effect, seed, mode):
     test, truth = synthesize(scenario, effect, seed)
-    diagnosis = dg.diagnose_test(test, dg.DiagnoseOptions(seed=seed, sampler=QUICK, mode=mode))
+    diagnosis = dg.diagnose_test(test, cf.DiagnoseOptions(seed=seed, sampler=QUICK, mode=mode))
     table = diagnosis.versus_baseline.set_index("name")
     screen = {n: round(r.map_gain, 1) for n, r in diagnosis.screen.items()}
     assert diagnosis.cause == effect, (truth["effect_params"], table[["elpd_diff", "elpd_diff_se"]], screen,
                                        diagnosis.reasons)
     if effect != "none":
         # the named term's own parameter is recovered: its 90 % interval holds the truth
-        params = dg.extension_parameters(diagnosis.candidates[effect])
+        params = cf.extension_parameters(diagnosis.candidates[effect])
         key, true = {"added_mass": ("k_a", truth["effect_params"].get("k_a")),
                      "sensor_lag": ("lag", truth["effect_params"].get("lag")),
                      "canopy_breathing": ("breathing_frequency", truth["effect_params"].get("frequency_hz")),

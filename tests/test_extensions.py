@@ -36,8 +36,8 @@ def clean_drogue():
 @pytest.mark.parametrize("name", PHYSICAL)
 def test_a_zero_size_extension_is_the_baseline(clean_drogue, name):
     test, reduction, truth = clean_drogue
-    base = prepare_model(test, reduction=reduction)
-    ext = prepare_model(test, reduction=reduction, extensions=[make_extension(name)])
+    base = prepare_model(test, reduction)
+    ext = prepare_model(test, reduction, extensions=[make_extension(name)])
     theta_base = np.array([truth.get(n, 1.0) for n in base.names])
     theta_ext = np.array([truth.get(n, NEUTRAL.get(n, 1.0)) for n in ext.names])
     assert ext.log_likelihood(theta_ext[None])[0] == pytest.approx(base.log_likelihood(theta_base[None])[0],
@@ -47,8 +47,8 @@ def test_a_zero_size_extension_is_the_baseline(clean_drogue, name):
 def test_ar1_with_no_memory_is_the_baseline_bin_by_bin(clean_drogue):
     """At τ_c → 0 the AR(1) model is the baseline's joint likelihood (q̄ covariance included), per bin."""
     test, reduction, truth = clean_drogue
-    base = prepare_model(test, reduction=reduction)
-    ar = prepare_model(test, reduction=reduction, extensions=[make_extension("correlated_noise")])
+    base = prepare_model(test, reduction)
+    ar = prepare_model(test, reduction, extensions=[make_extension("correlated_noise")])
     theta = np.array([truth.get(n, 1.0) for n in base.names])[None]
     theta_ar = np.array([truth.get(n, 1e-9 if n == "ar_time" else 1.0) for n in ar.names])[None]
     np.testing.assert_allclose(ar.pointwise_log_likelihood(theta_ar), base.pointwise_log_likelihood(theta),
@@ -61,7 +61,7 @@ def test_ar1_rewards_memory_only_when_the_residuals_have_it(clean_drogue):
     """Whitened residuals: on clean data at the truth a long memory costs likelihood; on residuals
     made smooth (a slow wave added to the data) it pays."""
     test, reduction, truth = clean_drogue
-    ar = prepare_model(test, reduction=reduction, extensions=[make_extension("correlated_noise")])
+    ar = prepare_model(test, reduction, extensions=[make_extension("correlated_noise")])
     theta = {tau: np.array([truth.get(n, tau if n == "ar_time" else 1.0) for n in ar.names])[None]
              for tau in (1e-6, 0.05)}
     assert ar.log_likelihood(theta[0.05])[0] < ar.log_likelihood(theta[1e-6])[0] - 50
@@ -78,11 +78,11 @@ def test_each_extension_explains_its_own_effect_and_no_other(scenario, effect):
     test, truth_doc = synthesize(scenario, effect, 7)
     reduction = reduce_test(test)
     truth = truth_parameter_values(test, truth_doc)
-    base = prepare_model(test, reduction=reduction)
+    base = prepare_model(test, reduction)
     baseline = base.log_likelihood(np.array([truth.get(n, 1.0) for n in base.names])[None])[0]
     gains = {}
     for name in PHYSICAL:
-        model = prepare_model(test, reduction=reduction, extensions=[make_extension(name)])
+        model = prepare_model(test, reduction, extensions=[make_extension(name)])
         values = dict(truth, **NEUTRAL)
         if name == effect:
             values.update(_true_extension_values(effect, truth_doc["effect_params"]))

@@ -18,6 +18,7 @@ import shutil
 import numpy as np
 import pytest
 
+from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.bundle import example_bundles, read_bundle
 from cpas_bayes.inference.fit import (SamplerOptions, find_map, first_guess, fit_model, fit_test, laplace_covariance,
                             prepare_model, run_ensemble, initial_walkers)
@@ -41,7 +42,7 @@ def _coverage(fit, truth):
 def drogue_example():
     path = next(p for p in example_bundles() if p.name.startswith("drogue"))
     test = read_bundle(path)
-    return test, prepare_model(test), truth_parameter_values(test, json.loads((path / "truth.json").read_text()))
+    return test, prepare_model(test, reduce_test(test)), truth_parameter_values(test, json.loads((path / "truth.json").read_text()))
 
 
 def test_map_is_a_maximum_near_the_truth(drogue_example):
@@ -85,7 +86,7 @@ def test_recovery_on_synthetic_drogue_and_main_tests():
     for scenario, seed in cases:
         test, truth_doc = synthesize(scenario, "none", seed)
         truth = truth_parameter_values(test, truth_doc)
-        fit = fit_model(prepare_model(test), SamplerOptions(seed=seed, n_ensembles=2, workers=1, progress=False))
+        fit = fit_model(prepare_model(test, reduce_test(test)), SamplerOptions(seed=seed, n_ensembles=2, workers=1, progress=False))
         inside = _coverage(fit, truth)
         covered.append(inside)
         post = fit.tree["posterior"]

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
+from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.bundle import example_bundles, read_bundle
 from cpas_bayes.inference.fit import first_guess, prepare_model
 from cpas_bayes.physics.inflation import cluster_drag_area, parachute_drag_area
@@ -20,7 +21,7 @@ def examples():
     for path in example_bundles():
         test = read_bundle(path)
         truth = json.loads((path / "truth.json").read_text())
-        out[path.name] = (test, prepare_model(test), truth_parameter_values(test, truth))
+        out[path.name] = (test, prepare_model(test, reduce_test(test)), truth_parameter_values(test, truth))
     return out
 
 
@@ -141,7 +142,8 @@ def _with_chutes(test, **options):
     chutes = list(test.parachutes)
     for i, changes in options.pop("chutes", {}).items():
         chutes[i] = dataclasses.replace(chutes[i], **changes)
-    return prepare_model(dataclasses.replace(test, parachutes=tuple(chutes)), **options)
+    edited = dataclasses.replace(test, parachutes=tuple(chutes))
+    return prepare_model(edited, reduce_test(edited), **options)
 
 
 def _rows_near_first_guess(model, rng, n=40):
@@ -186,7 +188,7 @@ def test_fused_baseline_likelihood_equals_the_numpy_pipeline(examples, name):
     draws = model.sample_prior(rng, 64)
     assert np.isfinite(model.log_prior(draws)).sum() > 32
     _assert_fused_equals_numpy(model, draws)
-    exponential = prepare_model(test, decay="exponential")
+    exponential = prepare_model(test, reduce_test(test), decay="exponential")
     _assert_fused_equals_numpy(exponential, _rows_near_first_guess(exponential, rng))
 
 

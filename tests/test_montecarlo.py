@@ -19,9 +19,9 @@ from cpas_bayes.app.cli import main
 from cpas_bayes.loads.compare import (exceedance_probability, measurement_percentile, stage_comparisons)
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.population.memo import Memo, MemoEntry
-from cpas_bayes.loads.montecarlo import (ClusterLayout, compare_fill_time_dispersion, draw_run_inputs, run_monte_carlo,
-                                   simulate_runs)
-from cpas_bayes.data.reduction import Peak, StageInterval, StagePeaks
+from cpas_bayes.loads.fill_time import compare_fill_time_dispersion
+from cpas_bayes.loads.montecarlo import ClusterLayout, draw_run_inputs, run_monte_carlo, simulate_runs
+from cpas_bayes.data.peaks import Peak, StageInterval, StagePeaks
 from cpas_bayes.physics.trajectory import SimulationOptions, VehicleProperties, VehicleState0, simulate
 
 DROGUE = EXAMPLES_DIR / "drogue-clean"

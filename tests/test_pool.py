@@ -1,4 +1,4 @@
-"""Pooling per-test posteriors into population dispersions (cpas_bayes.population.pool) and ``cpas-bayes pool``.
+"""Pooling per-test posteriors into population dispersions (cpas_bayes.population) and ``cpas-bayes pool``.
 
 Recovery checks draw campaigns from a KNOWN population and ask the pooled
 hyper-posterior to find it again:
@@ -26,11 +26,15 @@ from scipy import integrate
 
 from cpas_bayes.app.cli import main
 from cpas_bayes.core.errors import InputError
+from cpas_bayes.inference.fit_folder import FitRecord, load_fit
+from cpas_bayes.population.copula import pool_pair
+from cpas_bayes.population.families import make_family
+from cpas_bayes.population.hyper_posterior import pool_parameter, select_family
 from cpas_bayes.population.memo import MemoEntry, load_memo
-from cpas_bayes.population.pool import (PerTestDraws, PoolWarning, _psis, make_family, pool_fits, pool_pair,
-                             pool_parameter, select_family)
-from cpas_bayes.inference.fit_folder import load_fit
-from cpas_bayes.stats.priors import LogNormal, Normal, TruncNormal, Uniform
+from cpas_bayes.population.pool import pool_fits
+from cpas_bayes.population.psis import psis_log_weights
+from cpas_bayes.population.reweighting import PerTestDraws, PoolWarning
+from cpas_bayes.stats.distributions import LogNormal, Normal, TruncNormal, Uniform
 
 # The fit priors of a Drogue's first stage (priors/drogue.toml).
 PRIOR_N_P = LogNormal(10.0, 0.5, 2.0, 50.0)
@@ -127,12 +131,12 @@ def test_psis_smoothing_keeps_benign_weights_and_flags_heavy_tails():
     normalised weights sum to one and only the tail is changed."""
     rng = np.random.default_rng(0)
     light = rng.normal(0.0, 0.5, 4000)
-    lw, k = _psis(light)
+    lw, k = psis_log_weights(light)
     assert k < 0.3
     assert np.exp(lw).sum() == pytest.approx(1.0)
     order = np.argsort(light)[:3000]
     np.testing.assert_allclose(lw[order] - lw[order[0]], light[order] - light[order[0]], atol=1e-12)
-    _, k_heavy = _psis(rng.normal(0.0, 3.0, 4000))
+    _, k_heavy = psis_log_weights(rng.normal(0.0, 3.0, 4000))
     assert k_heavy > 0.7
 
 
@@ -140,7 +144,8 @@ def test_grid_loo_equals_refitting_without_each_test():
     """The leave-one-test-out elpd read off the full grid equals p(d_i | d_−i) computed from a hyper-posterior
     fitted without test i (a finer grid), to 0.01 — with only four wide-posterior tests, where p(λ | d_−i)
     differs most from p(λ | d)."""
-    from cpas_bayes.population.pool import _grid_hyper_posterior, _prepare, log_test_likelihoods
+    from cpas_bayes.population.hyper_posterior import grid_hyper_posterior
+    from cpas_bayes.population.reweighting import log_test_likelihoods, prepare_reweighting
     from scipy.special import logsumexp
 
     rng = np.random.default_rng(4)
@@ -151,7 +156,8 @@ def test_grid_loo_equals_refitting_without_each_test():
     pool = pool_parameter(data, None, fam, rng, hyper_scale=0.5, n_draws=500)
     for i in range(data.n_tests):
         rest = data.select(np.arange(data.n_tests) != i)
-        g, _ = _grid_hyper_posterior(rest, fam, _prepare(rest, fam), 0.5, pool.scale_floor, coarse=40, fine=120)
+        g, _ = grid_hyper_posterior(rest, fam, prepare_reweighting(rest, fam), 0.5, pool.scale_floor, coarse=40,
+                                    fine=120)
         log_li = log_test_likelihoods(data.select([i]), fam, g["loc"], g["scale"])[:, 0]
         ok = np.isfinite(g["log_post"])
         direct = logsumexp(g["log_post"][ok] + log_li[ok]) - logsumexp(g["log_post"][ok])
@@ -348,7 +354,10 @@ def fit_folders(tmp_path_factory):
     from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
     from cpas_bayes.inference.fit import prepare_model
 
-    model = prepare_model(read_bundle(EXAMPLES_DIR / "drogue-clean"))
+    from cpas_bayes.data.reduction import reduce_test
+
+    test = read_bundle(EXAMPLES_DIR / "drogue-clean")
+    model = prepare_model(test, reduce_test(test))
     root = tmp_path_factory.mktemp("fits")
     rng = np.random.default_rng(7)
     return [write_fit_folder(root / f"fit{i}", model, rng, f"EX-drogue-{i}", seed=10 + i) for i in range(3)]
@@ -440,6 +449,48 @@ def test_pool_fits_uses_each_parameters_own_per_test_prior(fit_folders):
     n = result.entries[("drogue", "first", "n")]
     assert np.all(n.per_canopy["median"] < result.entries[("drogue", "first", "n_p")].per_canopy["median"])
     assert result.pairs == {} and len(result.ess_table()) == 2 * len(result.entries)
+
+
+def test_pooling_fits_in_memory_gives_the_memo_of_pooling_their_folders(tmp_path):
+    """A notebook's route: ``fit_model`` results pooled without reading folders. Two small real fits (one
+    ensemble, 1000 steps) of the example Drogue test under two names, each also written to a folder by the
+    same call: the in-memory records hold what ``load_fit`` reads back, and pooling them (one as a
+    ``FitRecord.from_fit``, one as the bare ``Fit``) gives byte for byte the memo.toml, memo_draws.csv and
+    memo.md of pooling the folders with the same seed."""
+    from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
+    from cpas_bayes.data.reduction import reduce_test
+    from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
+    from cpas_bayes.outputs.memo import memo_markdown
+
+    test = read_bundle(EXAMPLES_DIR / "drogue-clean")
+    reduction = reduce_test(test)
+    fits, folders = [], []
+    for i in range(2):
+        model = prepare_model(replace(test, name=f"MEM-drogue-{i}"), reduction)
+        options = SamplerOptions(seed=i, n_ensembles=1, max_steps=1000, check_every=500, map_starts=2, workers=1,
+                                 progress=False)
+        fits.append(fit_model(model, options, out=tmp_path / f"fit{i}"))
+        folders.append(tmp_path / f"fit{i}")
+    for fit, folder in zip(fits, folders):
+        in_memory, on_disk = FitRecord.from_fit(fit), load_fit(folder)
+        assert in_memory.folder is None and in_memory.summary == on_disk.summary
+        assert in_memory.priors == on_disk.priors and in_memory.draws.keys() == on_disk.draws.keys()
+        assert all(np.array_equal(in_memory.draws[k], on_disk.draws[k]) for k in on_disk.draws)
+    results = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoolWarning)
+        for route, records in (("memory", [FitRecord.from_fit(fits[0]), fits[1]]),
+                               ("folders", [load_fit(f) for f in folders])):
+            results[route] = pool_fits(records, np.random.default_rng(3), n_draws=2000)
+    assert results["memory"].folders == [None, None] and results["folders"].folders == folders
+    provenance = {"created": "2026-01-01T00:00:00Z"}
+    for route, result in results.items():
+        memo = result.to_memo(provenance)
+        memo.write(tmp_path / route)
+        (tmp_path / route / "memo.md").write_text(memo_markdown(result, memo.provenance))
+    for name in ("memo.toml", "memo_draws.csv", "memo.md"):
+        assert (tmp_path / "memory" / name).read_bytes() == (tmp_path / "folders" / name).read_bytes(), name
+    assert load_memo(tmp_path / "memory").entry("drogue", "first", "n_p").n_tests == 2
 
 
 # ---------------------------------------------------------------------------

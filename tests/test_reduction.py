@@ -1,5 +1,6 @@
-"""Tests of cpas_bayes.data.reduction: each equation by hand, Monte Carlo checks of the
-propagated sigmas, recovery of the example bundles' truth, and the ``reduce`` command.
+"""Tests of cpas_bayes.data.reduction (with data.friction and data.peaks): each equation by
+hand, Monte Carlo checks of the propagated sigmas, recovery of the example bundles' truth,
+and the ``reduce`` command.
 
 truth.json is read here only, never by the package.
 """
@@ -19,6 +20,8 @@ from cpas_bayes.data import reduction as red
 from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle, example_bundles, read_bundle
 from cpas_bayes.app.cli import main
 from cpas_bayes.core.errors import InputError
+from cpas_bayes.data.friction import ScaleFactor, window_ratio
+from cpas_bayes.data.peaks import peak_filter, peak_filter_width
 from cpas_bayes.physics.inflation import parachute_drag_area
 from cpas_bayes.core.units import unit_system
 
@@ -146,17 +149,17 @@ def test_axial_load_eq13_by_hand():
 
 def test_window_ratio_by_hand():
     # A = 2·L exactly: R = 2 with no scatter.
-    ratio, se = red.window_ratio([2.0, 4.0, 6.0], [1.0, 2.0, 3.0])
+    ratio, se = window_ratio([2.0, 4.0, 6.0], [1.0, 2.0, 3.0])
     assert ratio == pytest.approx(2.0) and se == pytest.approx(0.0)
     # A = [3, 4, 5], L = 2: R = 4/2 = 2; e = A − 2L = [−1, 0, 1], var = 1, lag-1 ρ = 0,
     # SE = √(1/3)/2 = 0.288675.
-    ratio, se = red.window_ratio([3.0, 4.0, 5.0], [2.0, 2.0, 2.0])
+    ratio, se = window_ratio([3.0, 4.0, 5.0], [2.0, 2.0, 2.0])
     assert ratio == pytest.approx(2.0)
     assert se == pytest.approx(math.sqrt(1 / 3) / 2)
 
 
 def _two_window_factor(mode):
-    return red.ScaleFactor(mode=mode, windows=((0.0, 2.0), (4.0, 6.0)), values=np.array([1.1, 1.2]),
+    return ScaleFactor(mode=mode, windows=((0.0, 2.0), (4.0, 6.0)), values=np.array([1.1, 1.2]),
                            sigma_random=np.array([0.01, 0.02]),
                            systematic_terms=np.array([[0.003, 0.004], [0.006, 0.008]]),
                            systematic_names=("a", "b"), source="user")
@@ -212,17 +215,17 @@ def test_load_share_and_peaks_by_hand():
 
 def test_peak_filter_keeps_sharp_peak_and_reports_its_noise():
     rng = np.random.default_rng(7)
-    width = red.peak_filter_width(0.1, 100.0)
+    width = peak_filter_width(0.1, 100.0)
     assert width == 11
     # The filtered noise sd equals the reported random sigma (interior samples).
     noise = rng.normal(0.0, 3.0, size=(N_DRAWS, 41))
     smooth = savgol_filter(noise, width, 2, axis=1)
-    _, sigma = red.peak_filter(noise[0], np.full(41, 3.0), width)
+    _, sigma = peak_filter(noise[0], np.full(41, 3.0), width)
     assert smooth[:, 20].std() == pytest.approx(sigma[20], rel=0.05)
     assert sigma[20] == pytest.approx(3.0 * math.sqrt((savgol_coeffs(width, 2) ** 2).sum()))
     # A noise-free parabola is kept exactly by the quadratic filter.
     x = np.linspace(-1, 1, 41)
-    assert red.peak_filter(10 - x**2, np.zeros(41), width)[0][20] == pytest.approx(10.0)
+    assert peak_filter(10 - x**2, np.zeros(41), width)[0][20] == pytest.approx(10.0)
 
 
 # ---------------------------------------------------------------------------
@@ -309,7 +312,7 @@ def test_monte_carlo_window_ratio_standard_error(rho):
     noise = lfilter([math.sqrt(1 - rho**2)], [1.0, -rho], rng.normal(0.0, 8.0, (reps, n)), axis=1)
     A = true_ratio * level + noise
     L = level + rng.normal(0.0, 2.0, (reps, n))
-    ratios, errors = np.array([red.window_ratio(a, b) for a, b in zip(A, L)]).T
+    ratios, errors = np.array([window_ratio(a, b) for a, b in zip(A, L)]).T
     assert np.mean(ratios) == pytest.approx(true_ratio, abs=3 * np.std(ratios) / math.sqrt(reps))
     assert np.std(ratios) == pytest.approx(np.mean(errors), rel=0.05 if rho == 0 else 0.10)
 

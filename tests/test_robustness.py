@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from cpas_bayes.data.bundle import example_bundles, read_bundle
+from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.app.cli import main
 from cpas_bayes.core.executor import DaskExecutor, Executor, ProcessExecutor, in_worker, make_executor
 from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
@@ -91,8 +92,10 @@ FIT_OPTIONS = dict(seed=3, n_ensembles=2, workers=1, check_every=100, max_steps=
 FIT_SCRIPT = """
 import sys
 from cpas_bayes.data.bundle import read_bundle
+from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
-model = prepare_model(read_bundle(sys.argv[1]))
+test = read_bundle(sys.argv[1])
+model = prepare_model(test, reduce_test(test))
 fit_model(model, SamplerOptions(**{options}), checkpoint_dir=sys.argv[2])
 """
 
@@ -130,7 +133,8 @@ def test_a_fit_killed_with_sigkill_resumes_to_the_same_posterior(tmp_path):
     assert not (checkpoints / "ensemble_1.h5").exists()
     assert not [p for p in checkpoints.iterdir() if p.name.startswith(".")], "a half-written file was left"
 
-    model = prepare_model(read_bundle(bundle))
+    test = read_bundle(bundle)
+    model = prepare_model(test, reduce_test(test))
     options = SamplerOptions(**FIT_OPTIONS)
     resumed = fit_model(model, options, checkpoint_dir=checkpoints)
     uninterrupted = fit_model(model, options)

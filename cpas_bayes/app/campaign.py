@@ -35,6 +35,7 @@ Layout of OUT::
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time as _time
@@ -46,6 +47,7 @@ import numpy as np
 
 from cpas_bayes import __version__
 from cpas_bayes.data.bundle import TOML_NAME, read_bundle
+from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.stats.model_terms import EXTENSIONS
 from cpas_bayes.core.files import atomic_directory, write_json
@@ -278,21 +280,21 @@ def configuration_of(test) -> str:
 # per-test steps
 
 
-def _reduce_work(test):
+def _reduce_work(reduced):
     def work(tmp):
-        from cpas_bayes.data.reduction import reduce_test, write_reduction
+        from cpas_bayes.outputs.reduction import write_reduction
 
-        write_reduction(reduce_test(test), tmp)
+        write_reduction(reduced(), tmp)
     return work
 
 
-def _fit_work(test, config, checkpoint, echo, executor=None):
+def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
     def work(tmp):
         from cpas_bayes.inference.predictive_checks import check_report, run_checks
         from cpas_bayes.inference.fit import fit_model, prepare_model
         from cpas_bayes.outputs.plots.fit import write_fit_figures
 
-        model = prepare_model(test, priors=config.priors, decay=config.decay)
+        model = prepare_model(test, reduced(), priors=config.priors, decay=config.decay)
         fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint,
                         executor=executor)
         checks = run_checks(fit, rng=config.seed)
@@ -306,13 +308,13 @@ def _fit_work(test, config, checkpoint, echo, executor=None):
     return work
 
 
-def load_baseline_fit(test, folder, config):
-    """The baseline fit of a test from its fit folder (model rebuilt, MAP from map.json)."""
+def load_baseline_fit(test, reduction, folder, config):
+    """The baseline fit of a test from its fit folder (model rebuilt from ``reduction``, MAP from map.json)."""
     from cpas_bayes.inference.fit import Fit, SamplingResult, prepare_model
     from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, SUMMARY_NAME, load_datatree
 
     folder = Path(folder)
-    model = prepare_model(test, priors=config.priors, decay=config.decay)
+    model = prepare_model(test, reduction, priors=config.priors, decay=config.decay)
     m = json.loads((folder / "map.json").read_text())
     if m["names"] != list(model.names):
         raise InputError(folder / "map.json", "key 'names'", "does not match the model's parameters",
@@ -323,16 +325,18 @@ def load_baseline_fit(test, folder, config):
     return Fit(model, sampling, load_datatree(folder / POSTERIOR_NAME), summary)
 
 
-def _diagnose_work(test, config, fit_folder, echo, executor=None):
+def _diagnose_work(test, reduced, config, fit_folder, echo, executor=None):
     def work(tmp):
-        from cpas_bayes.inference.diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test, write_diagnosis
+        from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER, DiagnoseOptions
+        from cpas_bayes.inference.diagnose import diagnose_test
+        from cpas_bayes.outputs.diagnosis import write_diagnosis
         from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, build_summary, convergence, save_datatree, write_summary
 
-        fit = load_baseline_fit(test, fit_folder, config)
+        fit = load_baseline_fit(test, reduced(), fit_folder, config)
         options = DiagnoseOptions(seed=config.seed, candidates=tuple(config.candidates), priors=config.priors,
                                   decay=config.decay, mode=config.diagnose,
                                   sampler=replace(DIAGNOSIS_SAMPLER, workers=config.workers, progress=False))
-        d = diagnose_test(test, options, baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
+        d = diagnose_test(test, options, reduction=reduced(), baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
         write_diagnosis(d, tmp)
         if d.cause != "none":
             named = d.candidates[d.cause].fit
@@ -346,7 +350,8 @@ def _diagnose_work(test, config, fit_folder, echo, executor=None):
 
 def _compare_work(test, memo_folder, fit_folder, config):
     def work(tmp):
-        from cpas_bayes.loads.compare import compare_loads, write_comparison
+        from cpas_bayes.loads.compare import compare_loads
+        from cpas_bayes.outputs.compare import write_comparison
         from cpas_bayes.population.memo import load_memo
         from cpas_bayes.inference.fit_folder import load_fit
 
@@ -359,8 +364,9 @@ def _compare_work(test, memo_folder, fit_folder, config):
 def _montecarlo_work(like, memo_folder, config):
     def work(tmp):
         from cpas_bayes.population.memo import load_memo
-        from cpas_bayes.loads.montecarlo import (compare_fill_time_dispersion, run_monte_carlo, write_fill_time_comparison,
-                                 write_monte_carlo)
+        from cpas_bayes.loads.fill_time import compare_fill_time_dispersion
+        from cpas_bayes.loads.montecarlo import run_monte_carlo
+        from cpas_bayes.outputs.montecarlo import write_fill_time_comparison, write_monte_carlo
 
         memo = load_memo(memo_folder)
         result = run_monte_carlo(memo, like, config.montecarlo_runs, np.random.default_rng([config.seed, 21]))
@@ -382,12 +388,14 @@ def _test_task(job, report=None, executor=None):
     echo = report if report is not None else log.append
     records = []
     base = out / "tests" / test.name
+    reduced = functools.cache(lambda: reduce_test(test))  # once per run, only if a step is not up to date
     echo(f"{test.name}:")
-    run_step(base / "reduction", bundle_key, _reduce_work(test), records, f"{test.name} reduction", echo)
-    run_step(base / "fit", fit_key, _fit_work(test, config, out / ".checkpoints" / test.name, echo, executor),
+    run_step(base / "reduction", bundle_key, _reduce_work(reduced), records, f"{test.name} reduction", echo)
+    run_step(base / "fit", fit_key,
+             _fit_work(test, reduced, config, out / ".checkpoints" / test.name, echo, executor),
              records, f"{test.name} fit", echo)
     if diag_key is not None:
-        run_step(base / "diagnosis", diag_key, _diagnose_work(test, config, base / "fit", echo, executor),
+        run_step(base / "diagnosis", diag_key, _diagnose_work(test, reduced, config, base / "fit", echo, executor),
                  records, f"{test.name} diagnosis", echo)
     return records, log
 
@@ -487,7 +495,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     pool_key = _digest(sorted(fit_keys.items()), sorted(diag_keys.items()), config.pool_draws, config.seed)
 
     def pool_work(tmp):
-        from cpas_bayes.population.pool import pool_folders, write_pool
+        from cpas_bayes.outputs.memo import write_pool
+        from cpas_bayes.population.pool import pool_folders
 
         result = pool_folders([pool_sources[t.name] for t in tests], seed=config.seed, n_draws=config.pool_draws)
         write_pool(result, tmp, provenance={"campaign": str(folder), "tests": [t.name for t in tests],

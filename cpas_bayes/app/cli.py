@@ -117,7 +117,8 @@ def demo(out):
               help="Steady-state calibration window in seconds (repeat for several); replaces the automatic ones.")
 def reduce_command(bundle, out, scale, windows):
     """Reduce a flight test: parachute loads and drag areas with 1-sigma, friction scale factor, peaks."""
-    from cpas_bayes.data.reduction import parse_window, reduce_test, write_reduction
+    from cpas_bayes.data.reduction import parse_window, reduce_test
+    from cpas_bayes.outputs.reduction import write_reduction
 
     test = read_bundle(bundle)
     chosen = [parse_window(w, test.label) for w in windows] or None
@@ -191,13 +192,14 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
     resumable checkpoints in OUT/checkpoint/ (rerun the same command to resume).
     """
     from cpas_bayes.data.bundle import read_bundle
+    from cpas_bayes.data.reduction import reduce_test
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
     test = read_bundle(bundle)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}")
-    model = prepare_model(test, priors=priors, decay=decay)
+    model = prepare_model(test, reduce_test(test), priors=priors, decay=decay)
     _on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
                   "rerun the same command to resume from it")
     with _executor(min(workers, ensembles), scheduler) as executor:
@@ -234,8 +236,9 @@ def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, comp
     import numpy as np
 
     from cpas_bayes.population.memo import load_memo
-    from cpas_bayes.loads.montecarlo import (compare_fill_time_dispersion, run_monte_carlo, write_fill_time_comparison,
-                             write_monte_carlo)
+    from cpas_bayes.loads.fill_time import compare_fill_time_dispersion
+    from cpas_bayes.loads.montecarlo import run_monte_carlo
+    from cpas_bayes.outputs.montecarlo import write_fill_time_comparison, write_monte_carlo
 
     memo = load_memo(memo_path)
     test = read_bundle(like)
@@ -282,7 +285,8 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
     """Measured peak loads against predicted distributions, with the measurement's sigma."""
     import numpy as np
 
-    from cpas_bayes.loads.compare import compare_loads, write_comparison
+    from cpas_bayes.loads.compare import compare_loads
+    from cpas_bayes.outputs.compare import write_comparison
     from cpas_bayes.population.memo import load_memo
     from cpas_bayes.inference.fit_folder import load_fit
 
@@ -319,7 +323,9 @@ def pool_command(fitdirs, out, seed):
     """
     import warnings
 
-    from cpas_bayes.population.pool import PoolWarning, pool_folders, write_pool
+    from cpas_bayes.outputs.memo import write_pool
+    from cpas_bayes.population.pool import pool_folders
+    from cpas_bayes.population.reweighting import PoolWarning
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoolWarning)
@@ -357,7 +363,9 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
     """
     from dataclasses import replace
 
-    from cpas_bayes.inference.diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test, write_diagnosis
+    from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER, DiagnoseOptions
+    from cpas_bayes.inference.diagnose import diagnose_test
+    from cpas_bayes.outputs.diagnosis import write_diagnosis
     from cpas_bayes.stats.model_terms import EXTENSIONS
 
     names = tuple(c.strip() for c in candidates.split(",") if c.strip())
@@ -421,8 +429,24 @@ def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode
 # -- commands added by later capabilities go above this line --
 
 
+def _select_backend():
+    """Figures go to files: Agg, in this process and in the worker processes it starts.
+
+    The library itself never selects a backend (a notebook keeps its own); the
+    CLI does, unless the user chose one with MPLBACKEND.
+    """
+    import os
+
+    if "MPLBACKEND" not in os.environ:
+        os.environ["MPLBACKEND"] = "Agg"  # read by the workers' matplotlib
+        import matplotlib
+
+        matplotlib.use("Agg")
+
+
 def main(argv=None):
     """Entry point: run the CLI, turning bad input into one clear message."""
+    _select_backend()
     try:
         cli.main(args=argv, prog_name="cpas-bayes", standalone_mode=False)
     except InputError as exc:

@@ -123,7 +123,6 @@ class ProcessExecutor(Executor):
     """
 
     kind = "processes"
-    _PRELOAD = ["cpas_bayes.inference.fit", "cpas_bayes.loads.montecarlo", "cpas_bayes.inference.diagnose", "cpas_bayes.app.campaign"]
 
     def __init__(self, workers):
         import multiprocessing as mp
@@ -135,7 +134,9 @@ class ProcessExecutor(Executor):
             from multiprocessing import forkserver
 
             self._ctx = mp.get_context("forkserver")
-            self._ctx.set_forkserver_preload(self._PRELOAD)
+            # The server imports what the caller has imported of the package (the tasks' modules and
+            # their numerical libraries), so that workers start warm without this layer naming them.
+            self._ctx.set_forkserver_preload(sorted(m for m in sys.modules if m.startswith("cpas_bayes.") and not m.endswith("__main__")))
             # Start the server now: its imports (~2 s) overlap the caller's work until the first map.
             forkserver.ensure_running()
         else:

@@ -13,9 +13,10 @@ Procedure
    the thousands of steps an ensemble needs to expand.
 3. ``n_ensembles`` independent emcee ensembles (differential-evolution moves,
    80 % DE / 20 % snooker, which mix far better than the stretch move in 30–40
-   dimensions), each seeded by ``np.random.seed`` right before the sampler is
-   built (emcee copies numpy's global state then). Walkers of one ensemble are
-   not independent chains, so R-hat is the nested R-hat over ensembles.
+   dimensions), each with its own random state (``sampler.random_state`` from
+   the ensemble's seed; numpy's global generator is never touched). Walkers of
+   one ensemble are not independent chains, so R-hat is the nested R-hat over
+   ensembles.
 4. Each ensemble runs in chunks until the chain is longer than 50 integrated
    autocorrelation times τ and τ has changed by less than 5 % since the last
    chunk; burn-in = 2·max τ, thin = ½·min τ.
@@ -348,10 +349,12 @@ class _EnsembleStore:
         backend = emcee.backends.Backend()
         if self.checkpoint and self.checkpoint.exists():
             backend = self._load(backend)
-        np.random.seed(self.seed)  # emcee copies numpy's global RandomState here
         n_walkers, ndim = init.shape
         self.sampler = emcee.EnsembleSampler(n_walkers, ndim, model, vectorize=True, moves=_moves(),
                                              backend=backend)
+        if backend.iteration == 0:
+            # emcee would start from numpy's global state; give it the ensemble's own instead
+            self.sampler.random_state = np.random.RandomState(self.seed).get_state()
 
     def _load(self, backend):
         import h5py
@@ -507,13 +510,15 @@ class Fit:
     summary: dict
 
 
-def prepare_model(test, reduction=None, priors=None, decay="linear", extensions=(), native_rate=False):
-    """Reduce the test (unless given) and build its :class:`TestModel`."""
+def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), native_rate=False):
+    """The :class:`TestModel` of a test from its reduction (:func:`cpas_bayes.data.reduction.reduce_test`).
+
+    The reduction is an argument, not redone here: a command reduces a bundle
+    once and builds every model it needs (baseline, extensions) from that.
+    """
     from cpas_bayes.stats.observations import build_observations
     from cpas_bayes.stats.priors import load_kind_priors, load_nuisance_priors
-    from cpas_bayes.data.reduction import reduce_test
 
-    reduction = reduction if reduction is not None else reduce_test(test)
     obs = build_observations(test, reduction.frame, native_rate=native_rate)
     kind_priors = {p.kind: load_kind_priors(p.kind, priors) for p in test.parachutes}
     return TestModel(test, obs, kind_priors, load_nuisance_priors(priors), decay=decay, extensions=extensions)
@@ -545,5 +550,7 @@ def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=
 def fit_test(test, options: SamplerOptions = SamplerOptions(), out=None, priors=None, decay="linear",
              extensions=(), echo=None) -> Fit:
     """Reduce, model and sample one flight test (the baseline model unless extensions are given)."""
-    model = prepare_model(test, priors=priors, decay=decay, extensions=extensions)
+    from cpas_bayes.data.reduction import reduce_test
+
+    model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, extensions=extensions)
     return fit_model(model, options, out, echo)

@@ -34,7 +34,8 @@ import numpy as np
 import xarray as xr
 
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.files import atomic_path, write_json
+from cpas_bayes.core.summaries import quantile_summary
+from cpas_bayes.core.files import atomic_path, jsonable, write_json
 from cpas_bayes.physics.inflation import stage_key
 from cpas_bayes.stats.priors import prior_from_table
 
@@ -42,13 +43,6 @@ SUMMARY_NAME = "summary.json"
 POSTERIOR_NAME = "posterior.nc"
 QUANTILES = (0.05, 0.5, 0.95)
 STAGE_FIELDS = ("start", "n_p", "n", "expopen", "ck", "tk", "cds", "eps")
-
-
-def describe_draws(x):
-    """mean, sd and the 5/50/95 % quantiles of a 1-D array of draws."""
-    q = np.quantile(x, QUANTILES)
-    return {"mean": float(np.mean(x)), "sd": float(np.std(x, ddof=1)) if x.size > 1 else 0.0,
-            "q05": float(q[0]), "q50": float(q[1]), "q95": float(q[2])}
 
 
 def save_datatree(tree, target):
@@ -66,16 +60,37 @@ def load_datatree(path):
 
 @dataclass(frozen=True)
 class FitRecord:
-    """What later steps need of a fit: identity, draws and priors of each parameter."""
+    """What later steps need of a fit: identity, draws and priors of each parameter.
 
-    folder: Path
-    summary: dict
+    Read from a fit folder (:func:`load_fit`) or made from a fit held in memory
+    (:meth:`from_fit`, ``folder`` None); the two hold the same summary, draws and
+    priors.
+    """
+
+    folder: Path | None
+    summary: dict          # summary.json's content
     draws: dict            # parameter name -> 1-D array of posterior draws (chains × draws flattened)
-    priors: dict           # sampled parameter name -> Prior used in the fit
+    priors: dict           # sampled parameter name -> prior used in the fit
+
+    @classmethod
+    def from_fit(cls, fit) -> FitRecord:
+        """The record of a :class:`~cpas_bayes.inference.fit.Fit` held in memory (``fit_model`` without
+        ``out``): what :func:`load_fit` reads back from the folder that fit writes."""
+        summary = jsonable(fit.summary)   # the plain values summary.json would hold
+        return _record(None, summary, fit.tree, f"in-memory fit of test '{summary['test']}'")
 
     @property
     def test(self):
         return self.summary["test"]
+
+    @property
+    def source(self):
+        """Where the fit comes from, for messages: its folder, or the in-memory fit's test."""
+        return self.folder if self.folder is not None else f"in-memory fit of test '{self.test}'"
+
+    def source_file(self, name):
+        """A file of the fit folder (e.g. ``posterior.nc``), for messages; :attr:`source` for a fit in memory."""
+        return self.folder / name if self.folder is not None else self.source
 
     def parachutes(self):
         """[(id, kind, inflation, diameter_m, [stage keys])] in fit order."""
@@ -100,10 +115,15 @@ def load_fit(folder) -> FitRecord:
     for key in ("test", "parachutes", "priors"):
         if key not in summary:
             raise InputError(summary_path, f"key '{key}'", "missing", "rerun the fit with this version of cpas_bayes")
-    tree = load_datatree(folder / POSTERIOR_NAME)
+    return _record(folder, summary, load_datatree(folder / POSTERIOR_NAME), summary_path)
+
+
+def _record(folder, summary, tree, summary_source):
+    """A :class:`FitRecord` from a summary and a DataTree (draws flattened, priors rebuilt from their tables)."""
     post = tree["posterior"].to_dataset()
     draws = {name: np.asarray(post[name].values).reshape(-1) for name in post.data_vars}
-    priors = {name: prior_from_table(table, summary_path, f"priors.{name}") for name, table in summary["priors"].items()}
+    priors = {name: prior_from_table(table, summary_source, f"priors.{name}")
+              for name, table in summary["priors"].items()}
     return FitRecord(folder=folder, summary=summary, draws=draws, priors=priors)
 
 
@@ -238,7 +258,7 @@ def build_summary(model, tree, diagnostics, options):
     post = tree["posterior"]
 
     def stats(name):
-        return describe_draws(np.asarray(post[name].values).reshape(-1)) if name in post else None
+        return quantile_summary(post[name].values, QUANTILES) if name in post else None
 
     chutes = {}
     for p in model.parachutes:

@@ -1,19 +1,10 @@
-"""Posterior predictive checks and residual diagnostics of a fitted test.
+"""Posterior predictive checks of a fitted test: physical statistics and LOO-PIT.
 
-Everything here is computed from ``fit.model`` (its observations and forward
-model) and the posterior draws in ``fit.tree["posterior"]``; nothing is read
-from the stored ``observed_data`` / ``posterior_predictive`` groups, so a check
-can be rerun on a model whose observations were edited (e.g. with
-``dataclasses.replace(model.obs, ...)``). Values are SI.
-
-Replicated data
----------------
-For a posterior draw θ with prediction ŷ(θ) and error multipliers λ_acc,
-λ_lc, a replicated data set has the likelihood's error structure (model step
-4): an independent part σ_c per channel and a part u_c from the measured q̄,
-shared by all channels of a bin (zero for observations without it)::
-
-    y_rep,c = ŷ_c(θ) + λ_c·(σ_c·z_c + u_c·z_q),     z_c, z_q ~ N(0, 1)
+:func:`run_checks` gathers them with the residual diagnostics
+(:mod:`cpas_bayes.inference.residuals`) and :func:`check_report` serialises
+all three. Everything is computed from ``fit.model`` and the posterior draws,
+replicated data sets included (:mod:`cpas_bayes.inference.check_draws`, which
+states their error structure). Values are SI.
 
 Physical series the statistics are taken on (seed Eq. 6, 10, 11)
 -----------------------------------------------------------------
@@ -75,21 +66,6 @@ KS p-value (which assumes independent values) is optimistic: read D against
 the simultaneous 95 % band ε = √(ln(2/0.05)/(2n)) (DKW inequality) as a
 guide, not a test.
 
-Residuals
----------
-Standardised residual of bin j, channel c at the posterior mean prediction::
-
-    r_j = (y_j − E[ŷ_j]) / (λ̄_c·√(σ_j² + u_j²))
-
-with E[ŷ] the mean of the prediction over the draws, λ̄_c the posterior mean
-of the channel's error multiplier and √(σ² + u²) the channel's marginal
-1-sigma. Under the model r ~ N(0, 1), independent from bin to bin. Each bin is
-put in a flight phase from the posterior medians of start, t_fp and t_k
-(:func:`classify_phases`). Per channel × phase: n, mean, sd, lag-1
-autocorrelation and the Ljung–Box statistic (:func:`ljung_box`). Lags count
-bins (0.02–0.1 s apart); pairs (j, j + k) count only when both bins are in
-the phase.
-
 PSIS-LOO uses the joint log-likelihood of all channels of a bin (``total``);
 LOO-PIT needs one per channel and uses each channel's marginal density.
 """
@@ -106,111 +82,21 @@ from scipy import stats
 from scipy.signal import savgol_filter
 
 from cpas_bayes.core.files import jsonable
+from cpas_bayes.inference.check_draws import (ACC_CHANNEL, as_rng, check_tree, posterior_matrix, posterior_median,
+                                              predict_draws, replicate_data)
+from cpas_bayes.inference.residuals import LJUNG_BOX_LAGS, PARETO_K_LIMIT, ResidualReport, residuals
 
 PEAK_SMOOTHING_BINS = 5          # quadratic Savitzky–Golay window, bins
 FILL_FRACTION = 0.95             # fill time: reach this fraction of the growth to the stage mean
 BEFORE_WINDOW = 0.25             # s before a stage start that give the held level
-LJUNG_BOX_LAGS = 10              # Ljung–Box lags (fewer when a phase is short: n // 4)
-PARETO_K_LIMIT = 0.7             # PSIS-LOO: importance sampling unreliable above this
 PIT_BAND_ALPHA = 0.05            # DKW band of the LOO-PIT ECDF
-CHECK_DRAW_BUDGET = 2000         # posterior draws used for LOO-PIT / PSIS-LOO / residuals
 
 STATISTICS = ("peak_drag_area", "time_to_peak", "fill_time", "stage_mean_drag_area", "peak_load")
 STATISTIC_UNITS = {"peak_drag_area": "area", "time_to_peak": "time", "fill_time": "time",
                    "stage_mean_drag_area": "area", "peak_load": "force"}
 SI_LABELS = {"area": "m²", "time": "s", "force": "N"}
 
-PHASES = ("pre_deploy", "fill", "overinflation", "steady", "full_open")
-# A bin of a cluster channel takes the most dynamic phase of its parachutes.
-_CLUSTER_PRIORITY = {"fill": 4, "overinflation": 3, "steady": 2, "full_open": 1, "pre_deploy": 0}
-
 TOTAL = "total"
-ACC_CHANNEL = "accelerometer"
-
-
-# ---------------------------------------------------------------------------
-# posterior draws and predictions
-
-
-def posterior_matrix(tree, names):
-    """Posterior draws of ``names`` as (chain, draw, D) from a DataTree's posterior group."""
-    post = tree["posterior"]
-    return np.stack([np.asarray(post[n].values, float) for n in names], axis=-1)
-
-
-def posterior_median(tree, name, default=np.nan):
-    """Median over all posterior draws of one variable; ``default`` if the tree lacks it."""
-    post = tree["posterior"]
-    if name not in post:
-        return default
-    return float(np.median(np.asarray(post[name].values)))
-
-
-def predict_draws(model, theta, batch=256, log_likelihood=False):
-    """Model predictions in batches: {acc (S, N), lc (S, L, N), cds (S, P, N), noise_acc, noise_lc (S,)}.
-
-    With ``log_likelihood`` also the pointwise log-likelihood: ``ll_total`` (S, N), all
-    channels of a bin jointly, and, when the model gives them, each channel's marginal
-    ``ll_acc`` (S, N) and ``ll_lc`` (S, L, N).
-    """
-    fields = ("acc", "lc", "cds", "noise_acc", "noise_lc")
-    parts = {name: [] for name in fields + ("ll_total", "ll_acc", "ll_lc")}
-    split = True
-    for i in range(0, theta.shape[0], batch):
-        rows = theta[i:i + batch]
-        pred = model.predict(rows)
-        for name in fields:
-            parts[name].append(np.asarray(getattr(pred, name), float))
-        if not log_likelihood:
-            continue
-        parts["ll_total"].append(model.pointwise_log_likelihood(rows, pred))
-        if model.replaces_error_model:  # an extension's likelihood (e.g. AR(1)) gives the total per bin only
-            split = False
-            continue
-        ll_acc, ll_lc = model.pointwise_log_likelihood(rows, pred, by_channel=True)
-        parts["ll_acc"].append(ll_acc)
-        parts["ll_lc"].append(ll_lc)
-    out = {name: np.concatenate(parts[name], axis=0) for name in fields}
-    if log_likelihood:
-        out["ll_total"] = np.concatenate(parts["ll_total"], axis=0)
-        if split:
-            out["ll_acc"] = np.concatenate(parts["ll_acc"], axis=0)
-            out["ll_lc"] = np.concatenate(parts["ll_lc"], axis=0)
-    return out
-
-
-def _shared_qbar_parts(obs):
-    """The q̄ part of each channel's 1-sigma shared within a bin: (acc (N,), lc (L, N)); zeros if absent."""
-    acc_q = getattr(obs, "acc_qbar", None)
-    lc_q = getattr(obs, "lc_qbar", None)
-    return (np.zeros_like(obs.acc_sigma) if acc_q is None else np.asarray(acc_q, float),
-            np.zeros_like(obs.lc_sigma) if lc_q is None else np.asarray(lc_q, float))
-
-
-def channel_sigma(obs):
-    """Marginal 1-sigma of each channel before the error multiplier: √(σ² + u²), (acc (N,), lc (L, N))."""
-    acc_q, lc_q = _shared_qbar_parts(obs)
-    return np.hypot(obs.acc_sigma, acc_q), np.hypot(obs.lc_sigma, lc_q)
-
-
-def _replicate(model, pred, rng):
-    """Posterior-predictive data with the likelihood's error structure.
-
-    y_rep,c = ŷ_c + λ_c·(σ_c·z_c + u_c·z_q): independent parts z_c per channel and bin,
-    one shared q̄ draw z_q per bin (u = 0 for observations without a shared part).
-    """
-    obs = model.obs
-    acc_q, lc_q = _shared_qbar_parts(obs)
-    shared = rng.standard_normal(pred["acc"].shape)
-    acc = pred["acc"] + pred["noise_acc"][:, None] * (obs.acc_sigma * rng.standard_normal(pred["acc"].shape)
-                                                      + acc_q * shared)
-    lc = pred["lc"] + pred["noise_lc"][:, None, None] * (obs.lc_sigma * rng.standard_normal(pred["lc"].shape)
-                                                         + lc_q * shared[:, None, :])
-    return acc, lc
-
-
-def _rng(rng):
-    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
 
 # ---------------------------------------------------------------------------
@@ -403,12 +289,12 @@ class PPCResult:
 
 def ppc_check(fit, n_draws=200, rng=None) -> PPCResult:
     """Posterior predictive statistics with the replicated values (see :func:`ppc_statistics`)."""
-    rng = _rng(rng)
+    rng = as_rng(rng)
     model, tree = fit.model, fit.tree
     draws = posterior_matrix(tree, model.names).reshape(-1, model.ndim)
     pick = rng.choice(draws.shape[0], size=min(n_draws, draws.shape[0]), replace=False)
     pred = predict_draws(model, draws[pick])
-    acc_rep, lc_rep = _replicate(model, pred, rng)
+    acc_rep, lc_rep = replicate_data(model, pred, rng)
     obs = model.obs
     # Row 0 is the observed data set, rows 1.. the replicated ones.
     acc = np.concatenate([obs.acc[None], acc_rep], axis=0)
@@ -444,60 +330,6 @@ def ppc_statistics(fit, n_draws=200, rng=None) -> pd.DataFrame:
     realisation; definitions in the module docstring.
     """
     return ppc_check(fit, n_draws, rng).table
-
-
-# ---------------------------------------------------------------------------
-# check tree: posterior subset with matching log-likelihood and predictive
-
-
-def _subset_draws(n_chain, draw_coords, budget):
-    """Every k-th stored draw (counting from the last) so that chains × draws ≤ ``budget``."""
-    step = max(1, int(math.ceil(n_chain * draw_coords.size / budget)))
-    return draw_coords[::-1][::step][::-1]
-
-
-def check_tree(fit, budget=CHECK_DRAW_BUDGET, rng=None):
-    """DataTree for PSIS-LOO and LOO-PIT, every group on the same draws.
-
-    posterior (subset of draws), log_likelihood ``total`` (time), ``acc`` (time),
-    ``lc`` (load_cell, time), posterior_predictive ``acc``/``lc`` (one replicate per
-    draw) and observed_data ``acc``/``lc``, all recomputed from ``fit.model``.
-    Also carries the mean prediction in constant_data (``acc_mean``, ``lc_mean``).
-    """
-    import arviz as az
-
-    rng = _rng(rng)
-    model, tree = fit.model, fit.tree
-    post = tree["posterior"].to_dataset()
-    draws = _subset_draws(post.sizes["chain"], np.asarray(post["draw"].values), budget)
-    post = post.sel(draw=draws)
-    theta = np.stack([np.asarray(post[n].values, float) for n in model.names], axis=-1)
-    n_chain, n_draw = theta.shape[:2]
-    flat = theta.reshape(-1, model.ndim)
-    pred = predict_draws(model, flat, log_likelihood=True)
-    acc_rep, lc_rep = _replicate(model, pred, rng)
-    obs = model.obs
-    shape = (n_chain, n_draw)
-    lc_ids = [model.parachutes[int(i)].id for i in obs.lc_index]
-    channels = ("acc", "lc") if lc_ids else ("acc",)
-    replicated = {"acc": acc_rep, "lc": lc_rep}
-    out = az.from_dict(
-        {
-            "posterior": {n: post[n].values for n in model.names},
-            "log_likelihood": {name[3:]: pred[name].reshape(shape + pred[name].shape[1:])
-                               for name in ("ll_total", "ll_acc", "ll_lc")
-                               if name in pred and name[3:] in ("total",) + channels},
-            "posterior_predictive": {c: replicated[c].reshape(shape + replicated[c].shape[1:]) for c in channels},
-            "observed_data": {c: getattr(obs, c) for c in channels},
-            "constant_data": {"acc_mean": pred["acc"].mean(axis=0), "lc_mean": pred["lc"].mean(axis=0)},
-        },
-        coords={"chain": np.asarray(post["chain"].values), "draw": draws, "time": obs.time,
-                "load_cell": lc_ids},
-        dims={"acc": ["time"], "lc": ["load_cell", "time"], "total": ["time"],
-              "acc_mean": ["time"], "lc_mean": ["load_cell", "time"]},
-        check_conventions=False,
-    )
-    return out
 
 
 # ---------------------------------------------------------------------------
@@ -554,209 +386,6 @@ def loo_pit(fit, tree=None) -> LooPitResult:
 
 
 # ---------------------------------------------------------------------------
-# residual phases and serial correlation
-
-
-def classify_phases(time, starts, t_fp, t_k, infinite=True):
-    """Flight phase of each bin for one parachute: array of labels from :data:`PHASES`.
-
-    ``starts``, ``t_fp``, ``t_k`` (K,) per stage in time order. With s_k the
-    start of stage k and s_K = ∞:
-
-    * ``pre_deploy``      t < s_1
-    * ``fill``            s_k ≤ t < s_k + t_fp,k
-    * ``overinflation``   s_k + t_fp,k ≤ t < s_k + t_fp,k + t_k,k   (infinite mass only)
-    * ``steady``          later in a reefed stage (k < K)
-    * ``full_open``       later in the last stage
-
-    each phase cut at s_{k+1}.
-    """
-    time = np.asarray(time, float)
-    starts = np.asarray(starts, float)
-    t_fp = np.asarray(t_fp, float)
-    t_k = np.asarray(t_k, float) if infinite else np.zeros_like(starts)
-    label = np.full(time.shape, "pre_deploy", dtype=object)
-    n_stages = starts.size
-    for k in range(n_stages):
-        end = starts[k + 1] if k + 1 < n_stages else np.inf
-        in_stage = (time >= starts[k]) & (time < end)
-        tau = time - starts[k]
-        label[in_stage] = "full_open" if k == n_stages - 1 else "steady"
-        label[in_stage & (tau < t_fp[k] + t_k[k])] = "overinflation"
-        label[in_stage & (tau < t_fp[k])] = "fill"
-    return label
-
-
-def cluster_phases(labels):
-    """Phase of a channel that sees several parachutes (rows of ``labels``): the most dynamic one.
-
-    Priority fill > overinflation > steady > full_open > pre_deploy: a bin is
-    ``full_open`` only when every parachute is steady full open, ``pre_deploy``
-    only before every first start.
-    """
-    labels = np.atleast_2d(np.asarray(labels, dtype=object))
-    rank = np.zeros(labels.shape, dtype=int)
-    for name, r in _CLUSTER_PRIORITY.items():
-        rank[labels == name] = r
-    by_rank = np.empty(len(_CLUSTER_PRIORITY), dtype=object)
-    for name, r in _CLUSTER_PRIORITY.items():
-        by_rank[r] = name
-    return by_rank[rank.max(axis=0)]
-
-
-def autocorrelation(x, max_lag, mask=None):
-    """Sample autocorrelation r_1..r_max_lag of ``x`` restricted to ``mask``.
-
-    r_k = Σ_{j: j, j+k ∈ mask} (x_j − x̄)(x_{j+k} − x̄) / Σ_{j ∈ mask} (x_j − x̄)²,
-    x̄ the mean over the mask; for a full mask the usual estimator.
-    """
-    x = np.asarray(x, float)
-    mask = np.ones(x.size, bool) if mask is None else np.asarray(mask, bool)
-    n = int(mask.sum())
-    out = np.full(max_lag, np.nan)
-    if n < 2:
-        return out
-    d = np.where(mask, x - x[mask].mean(), 0.0)
-    denom = np.sum(d**2)
-    if denom <= 0:
-        return out
-    for k in range(1, min(max_lag, x.size - 1) + 1):
-        out[k - 1] = np.sum(d[:-k] * d[k:]) / denom  # zero outside the mask: only in-mask pairs count
-    return out
-
-
-def ljung_box(x, lags=LJUNG_BOX_LAGS, mask=None):
-    """Ljung–Box portmanteau statistic and p-value for serial correlation.
-
-    Q = n·(n + 2)·Σ_{k=1}^{h} r_k² / (n − k),  p = P(χ²_h ≥ Q)
-
-    with r_k from :func:`autocorrelation`, n the number of values in the mask.
-    Returns (Q, p, h); NaNs when h < 1.
-    """
-    x = np.asarray(x, float)
-    n = int(x.size if mask is None else np.asarray(mask, bool).sum())
-    h = int(min(lags, n - 1))
-    if h < 1:
-        return float("nan"), float("nan"), 0
-    r = autocorrelation(x, h, mask)
-    k = np.arange(1, h + 1)
-    q = float(n * (n + 2) * np.sum(r**2 / (n - k)))
-    return q, float(stats.chi2.sf(q, h)), h
-
-
-@dataclass
-class ResidualReport:
-    """Standardised residuals per channel, their phase table, Pareto-k flags and error multipliers."""
-
-    time: np.ndarray
-    residuals: dict          # channel -> (N,)
-    phases: dict             # channel -> (N,) phase labels
-    table: pd.DataFrame      # channel × phase statistics
-    pareto_k: np.ndarray     # (N,) PSIS-LOO Pareto k of the bins (all channels of a bin)
-    high_pareto_k: pd.DataFrame
-    noise: dict              # error multiplier -> {mean, q05, q95}
-    elpd_loo: dict
-
-    def overall(self, channel):
-        """The channel's whole-record row of :attr:`table` (phase ``all``)."""
-        t = self.table
-        return t[(t["channel"] == channel) & (t["phase"] == "all")].iloc[0]
-
-
-def stage_timing_medians(fit):
-    """Posterior medians per parachute: (starts (K,), t_fp (K,), t_k (K,), infinite)."""
-    tree = fit.tree
-    out = {}
-    for p in fit.model.parachutes:
-        ks = range(1, len(p.stages) + 1)
-        out[p.id] = (np.array([posterior_median(tree, f"{p.id}.s{k}.start") for k in ks]),
-                     np.array([posterior_median(tree, f"{p.id}.s{k}.t_fp", 0.0) for k in ks]),
-                     np.array([posterior_median(tree, f"{p.id}.s{k}.tk", 0.0) for k in ks]),
-                     p.inflation == "infinite")
-    return out
-
-
-def channel_phases(fit):
-    """Phase labels per channel: each load cell by its parachute, the accelerometer by the cluster."""
-    obs = fit.model.obs
-    timing = stage_timing_medians(fit)
-    per_chute = {pid: classify_phases(obs.time, *t[:3], infinite=t[3]) for pid, t in timing.items()}
-    out = {ACC_CHANNEL: cluster_phases(np.array(list(per_chute.values())))}
-    for chute in obs.lc_index:
-        pid = fit.model.parachutes[int(chute)].id
-        out[f"load cell {pid}"] = per_chute[pid]
-    return out
-
-
-def _phase_rows(channel, r, phase):
-    rows = []
-    for name in ("all",) + PHASES:
-        mask = np.ones(r.size, bool) if name == "all" else (phase == name)
-        n = int(mask.sum())
-        if n == 0:
-            continue
-        vals = r[mask]
-        acf1 = autocorrelation(r, 1, mask)[0] if n > 2 else np.nan
-        q, p, h = ljung_box(r, min(LJUNG_BOX_LAGS, n // 4), mask)
-        rows.append({"channel": channel, "phase": name, "n": n, "mean": float(vals.mean()),
-                     "sd": float(vals.std(ddof=1)) if n > 1 else np.nan, "acf1": float(acf1),
-                     "ljung_box_q": q, "ljung_box_lags": h, "ljung_box_p": p})
-    return rows
-
-
-def _describe(x):
-    x = np.asarray(x, float).ravel()
-    q05, q95 = np.quantile(x, (0.05, 0.95))
-    return {"mean": float(x.mean()), "q05": float(q05), "q95": float(q95)}
-
-
-def residuals(fit, tree=None) -> ResidualReport:
-    """Standardised residuals r = (y − E[ŷ])/(λ̄·√(σ² + u²)) per channel, tested per flight phase.
-
-    E[ŷ] is the mean prediction over the check draws (:func:`check_tree`), λ̄ the
-    posterior mean error multiplier. The table has, per channel × phase (and
-    ``all``): n, mean, sd, acf1 (lag-1 autocorrelation), ljung_box_q/_lags/_p
-    (h = min(10, n // 4) lags). ``pareto_k`` is PSIS-LOO's k per time bin from
-    ``arviz.loo(tree, var_name="total", pointwise=True)``; bins above 0.7 are
-    listed in ``high_pareto_k`` with the accelerometer's phase there.
-    """
-    import arviz as az
-
-    tree = check_tree(fit) if tree is None else tree
-    model, obs = fit.model, fit.model.obs
-    post = fit.tree["posterior"]
-    lam_acc = float(np.mean(post["noise_acc"].values))
-    lam_lc = float(np.mean(post["noise_lc"].values)) if "noise_lc" in post else 1.0
-    const = tree["constant_data"]
-    acc_mean = np.asarray(const["acc_mean"].values)
-    lc_mean = np.asarray(const["lc_mean"].values).reshape(obs.lc.shape)
-    sig_acc, sig_lc = channel_sigma(obs)
-    res = {ACC_CHANNEL: (obs.acc - acc_mean) / (lam_acc * sig_acc)}
-    for row, chute in enumerate(obs.lc_index):
-        res[f"load cell {model.parachutes[int(chute)].id}"] = (obs.lc[row] - lc_mean[row]) / (lam_lc * sig_lc[row])
-    phases = channel_phases(fit)
-    rows = []
-    for channel, r in res.items():
-        rows.extend(_phase_rows(channel, r, phases[channel]))
-
-    with warnings.catch_warnings():
-        # High Pareto k is reported below, bin by bin; arviz's generic warning adds nothing.
-        warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
-        loo = az.loo(tree, var_name="total", pointwise=True)
-    k = np.asarray(loo.pareto_k.values, float)
-    high = np.flatnonzero(k > PARETO_K_LIMIT)
-    high_table = pd.DataFrame({"time": obs.time[high], "pareto_k": k[high],
-                               "phase": phases[ACC_CHANNEL][high].astype(str)})
-    noise = {"noise_acc": _describe(post["noise_acc"].values)}
-    if "noise_lc" in post:
-        noise["noise_lc"] = _describe(post["noise_lc"].values)
-    elpd = {"elpd_loo": float(loo.elpd), "se": float(loo.se), "p_loo": float(loo.p),
-            "n_high_pareto_k": int(high.size), "pareto_k_max": float(np.max(k))}
-    return ResidualReport(time=np.asarray(obs.time), residuals=res, phases=phases, table=pd.DataFrame(rows),
-                          pareto_k=k, high_pareto_k=high_table, noise=noise, elpd_loo=elpd)
-
-
-# ---------------------------------------------------------------------------
 # report
 
 
@@ -771,7 +400,7 @@ class FitChecks:
 
 def run_checks(fit, n_draws=200, rng=None) -> FitChecks:
     """PPC statistics, LOO-PIT and residuals sharing one :func:`check_tree`."""
-    rng = _rng(rng if rng is not None else 0)
+    rng = as_rng(rng if rng is not None else 0)
     tree = check_tree(fit, rng=rng)
     return FitChecks(ppc=ppc_check(fit, n_draws, rng), loo_pit=loo_pit(fit, tree), residuals=residuals(fit, tree))
 

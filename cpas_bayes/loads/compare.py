@@ -42,6 +42,9 @@ L ~ N(m, σ²) given the measurement (flat prior), ::
 
 ``p_exceed_without_sigma`` = share of predicted draws above m is reported
 beside it, and ``percentile_without_sigma`` likewise.
+
+:mod:`cpas_bayes.outputs.compare` writes a comparison (``compare.json``,
+``compare.png``; ``cpas-bayes compare``).
 """
 
 from __future__ import annotations
@@ -49,18 +52,18 @@ from __future__ import annotations
 import math
 import time as _time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from scipy import special
 
 from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.outputs.figures import write_json_and_figure
+from cpas_bayes.core.summaries import quantile_summary
 from cpas_bayes.population.memo import Memo
-from cpas_bayes.loads.montecarlo import (ClusterLayout, MonteCarloResult, assemble_inputs, choose_engine, describe,
-                         ensure_compiled, json_safe, run_monte_carlo, simulate_runs)
+from cpas_bayes.loads.montecarlo import (QUANTILE_LEVELS, ClusterLayout, MonteCarloResult, assemble_inputs,
+                                         run_monte_carlo, simulate_runs)
 from cpas_bayes.inference.fit_folder import FitRecord, POSTERIOR_NAME, SUMMARY_NAME
+from cpas_bayes.physics.engine import choose_engine, ensure_compiled
 from cpas_bayes.data.reduction import Reduction, reduce_test
 from cpas_bayes.physics.trajectory import SimulationOptions
 
@@ -151,7 +154,7 @@ def stage_comparisons(predictions: dict, peaks) -> tuple:
 
 
 def _check_fit_matches(fit: FitRecord, layout: ClusterLayout):
-    where = Path(fit.folder) / SUMMARY_NAME
+    where = fit.source_file(SUMMARY_NAME)
     if fit.test != layout.test_name:
         raise InputError(where, "key 'test'", f"the fit is of test {fit.test!r}, the bundle is {layout.test_name!r}",
                          "pass the fit folder written for this bundle")
@@ -186,7 +189,7 @@ def posterior_run_inputs(fit: FitRecord, layout: ClusterLayout, runs: int, rng: 
             names += [(f"{pre}.{name}", (i, k, role)) for name, role in roles]
     missing = [name for name, _ in names if name not in fit.draws]
     if missing:
-        raise InputError(Path(fit.folder) / POSTERIOR_NAME, f"posterior variable '{missing[0]}'", "missing",
+        raise InputError(fit.source_file(POSTERIOR_NAME), f"posterior variable '{missing[0]}'", "missing",
                          "rerun 'cpas-bayes fit' for this bundle with this version of cpas_bayes")
     available = int(np.asarray(fit.draws[names[0][0]]).size)
     pick = rng.choice(available, size=runs, replace=runs > available)
@@ -210,7 +213,7 @@ def posterior_predictive(test: FlightTest, fit: FitRecord, runs: int, rng: np.ra
                             desc="posterior predictive")
     runtime, cpu = _time.perf_counter() - clock, _time.process_time() - cpu
     return MonteCarloResult(layout, inputs, outputs, "n_p", True, runtime, engine_used, options,
-                            {"fit": str(fit.folder), "posterior_draws_available": available}, cpu)
+                            {"fit": str(fit.source), "posterior_draws_available": available}, cpu)
 
 
 # ---------------------------------------------------------------------------
@@ -243,8 +246,11 @@ class LoadComparison:
         for k, pk in enumerate(self.reduction.peaks):
             predicted = {}
             for source, result in self.predictions.items():
-                predicted[source] = {"peak_load": describe(u.from_si(result.outputs.stage_peak_load[:, k], "force")),
-                                     "peak_time": describe(result.outputs.stage_peak_time[:, k])}
+                o = result.outputs
+                predicted[source] = {
+                    "peak_load": quantile_summary(u.from_si(o.stage_peak_load[:, k], "force"), QUANTILE_LEVELS,
+                                                  finite_only=True),
+                    "peak_time": quantile_summary(o.stage_peak_time[:, k], QUANTILE_LEVELS, finite_only=True)}
             comparisons = {}
             for c in self.comparisons:
                 if c.stage_index == k:
@@ -305,15 +311,3 @@ def compare_loads(test: FlightTest, memo: Memo | None = None, fit: FitRecord | N
         predictions["posterior"] = posterior_predictive(test, fit, runs, rng, batch=batch, progress=progress,
                                                         options=options, history_runs=history_runs, engine=engine)
     return LoadComparison(test, reduction, predictions, stage_comparisons(predictions, reduction.peaks))
-
-
-def write_comparison(comparison: LoadComparison, out, extra=None):
-    """Write compare.json and compare.png into ``out`` (atomically); return their paths."""
-    from cpas_bayes.outputs.plots.montecarlo import plot_load_comparison
-
-    out = Path(out)
-    doc = comparison.to_json()
-    doc.update(extra or {})
-    paths = {"json": out / "compare.json", "png": out / "compare.png"}
-    write_json_and_figure(paths["json"], json_safe(doc), paths["png"], plot_load_comparison(comparison))
-    return paths

@@ -229,7 +229,13 @@ import numba  # noqa: E402
 
 
 @numba.njit(cache=True)
-def _stage_value(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, linear):
+def compiled_stage_drag_area(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, linear):
+    """Compiled scalar :func:`stage_drag_area`: drag area ``tau`` s after the stage started.
+
+    Takes the stage's timing already derived (``held`` = CDS_start, ``t_f``,
+    ``t_fp``) so a caller evaluating many instants derives it once; ``linear``
+    selects the linear decay, else the exponential one.
+    """
     if t_f <= 0.0:
         return cds_i
     if tau < t_fp:
@@ -284,15 +290,16 @@ def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, c
         if t_sorted:
             i = np.searchsorted(t, t0)
             while i < N and t[i] < t1:
-                out[i] = _stage_value(t[i] - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
+                out[i] = compiled_stage_drag_area(t[i] - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
                 i += 1
         else:
             for i in range(N):
                 ti = t[i]
                 if ti >= t0 and ti < t1:
-                    out[i] = _stage_value(ti - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
+                    out[i] = compiled_stage_drag_area(ti - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k],
+                                                      linear)
         if k + 1 < n_stages:
-            held = _stage_value(t1 - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
+            held = compiled_stage_drag_area(t1 - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
 
 
 @numba.njit(cache=True)

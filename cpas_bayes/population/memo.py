@@ -5,7 +5,7 @@ A memo folder holds::
     memo.toml          one entry per parachute kind, stage and parameter
     memo_draws.csv     population-predictive draws, one row per draw of a kind
                        (columns keep the correlations between parameters)
-    memo.md            a readable table (written by the pooling step)
+    memo.md            a readable table (written with the memo by cpas_bayes.outputs.memo)
 
 memo.toml layout::
 
@@ -26,6 +26,11 @@ memo.toml layout::
 
     [drogue.parachute.cd_o]            # per-canopy quantities use stage key "parachute"
 
+An entry's ``family`` and ``params`` are a table of
+:mod:`cpas_bayes.stats.distributions` (:meth:`MemoEntry.distribution`); its
+``bounds`` are a truncnormal's truncation and a beta's range, and every
+family's draws are clipped to them.
+
 Stage keys are those of :func:`cpas_bayes.physics.inflation.stage_key`: ``first``,
 ``reefed1``…, ``full_open``. Parameters: ``n_p``, ``n``, ``expopen``, ``ck``,
 ``tk``, ``eps`` per stage, ``cd_o`` per canopy, and ``t_fp`` (peak fill time
@@ -45,10 +50,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import tomli_w
-from scipy import stats
 
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import atomic_path, write_text
+from cpas_bayes.stats.distributions import Distribution, from_table
 
 MEMO_NAME = "memo.toml"
 DRAWS_NAME = "memo_draws.csv"
@@ -69,27 +74,17 @@ class MemoEntry:
     n_tests: int = 0
     criterion: dict = field(default_factory=dict)
 
-    def distribution(self):
-        """A frozen scipy distribution of the family (bounds applied where the family has them)."""
-        p = self.params
-        lo, hi = self.bounds
-        if self.family == "normal":
-            return stats.norm(p["mu"], p["sigma"])
-        if self.family == "truncnormal":
-            a, b = (lo - p["mu"]) / p["sigma"], (hi - p["mu"]) / p["sigma"]
-            return stats.truncnorm(a, b, loc=p["mu"], scale=p["sigma"])
-        if self.family == "lognormal":
-            return stats.lognorm(s=p["sigma_log"], scale=p["median"])
-        if self.family == "beta":
-            return stats.beta(p["a"], p["b"], loc=lo, scale=hi - lo)
-        if self.family == "uniform":
-            return stats.uniform(loc=p["low"], scale=p["high"] - p["low"])
-        raise ValueError(f"unknown family {self.family!r}")
+    def distribution(self) -> Distribution:
+        """The entry's frozen distribution (:mod:`cpas_bayes.stats.distributions`): ``params``, with
+        ``bounds`` as the truncation of a truncnormal and the range of a beta."""
+        table = {"family": self.family, **self.params}
+        if self.family in ("truncnormal", "beta"):
+            table["low"], table["high"] = self.bounds
+        return from_table(table)
 
     def sample(self, rng, size):
-        """Independent draws, clipped to the entry's bounds."""
-        x = self.distribution().ppf(rng.uniform(size=size))
-        return np.clip(x, *self.bounds)
+        """Independent draws (inverse transform of ``rng.uniform``), clipped to the entry's bounds."""
+        return np.clip(self.distribution().sample(rng, size), *self.bounds)
 
     def to_table(self):
         out = {"family": self.family, "params": dict(self.params),

@@ -58,7 +58,8 @@ import numpy as np
 from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.physics.inflation import DECAY_SHAPES, cluster_drag_area, parachute_stage_law, stage_role, stage_tag
 from cpas_bayes.stats.observations import Observations
-from cpas_bayes.stats.priors import KindPriors, Normal, NuisancePriors, PriorSet, TruncNormal
+from cpas_bayes.stats.distributions import Normal, TruncNormal
+from cpas_bayes.stats.priors import KindPriors, NuisancePriors, PriorSet
 
 _LOG_2PI = math.log(2.0 * math.pi)
 

@@ -1,16 +1,11 @@
 """Prior distributions read from readable TOML files (``priors/<kind>.toml``).
 
-A prior is an object with vectorised ``logpdf``, ``ppf`` and ``sample``, and
-its support ``(low, high)``. Families:
-
-===============  =====================================  ==========================
-family           numbers                                density
-===============  =====================================  ==========================
-``uniform``      ``low, high``                          1/(high − low)
-``normal``       ``mu, sigma``                          N(mu, sigma²)
-``truncnormal``  ``mu, sigma, low, high``               N(mu, sigma²) cut to [low, high]
-``lognormal``    ``median, sigma_log`` [``low, high``]  log x ~ N(log median, sigma_log²), optionally cut
-===============  =====================================  ==========================
+A prior is a frozen distribution of :mod:`cpas_bayes.stats.distributions`
+(vectorised ``logpdf``, ``ppf`` and ``sample``, support ``(low, high)``) written
+as a TOML inline table ``{ family = ..., <numbers> }``. Prior families (their
+numbers and densities are tabled in :mod:`cpas_bayes.stats.distributions`):
+``uniform`` (low, high), ``normal`` (mu, sigma), ``truncnormal`` (mu, sigma,
+low, high) and ``lognormal`` (median, sigma_log [, low, high]).
 
 A kind file holds one table per stage role, plus ``[parachute]`` for per-canopy
 quantities::
@@ -45,195 +40,28 @@ from pathlib import Path
 
 import numba
 import numpy as np
-from scipy import special, stats
 
 from cpas_bayes.core.errors import InputError
+from cpas_bayes.stats.distributions import TABLE_FORMS, LogNormal, Normal, TruncNormal, Uniform
 
 PRIORS_DIR = Path(__file__).parent.parent / "data" / "priors"
 ROLES = ("first", "reefed", "full_open")
-STAGE_PARAMETERS = ("n_p", "expopen", "ck", "tk", "eps")
+STAGE_PARAMETERS = ("n_p", "expopen", "ck", "tk", "eps")   # sampled per stage (see the kind files)
 PARACHUTE_PARAMETERS = ("cd_o",)
-
-_SQRT2 = math.sqrt(2.0)
-_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
-
-
-def _std_normal_logcdf_diff(a, b):
-    """log(Φ(b) − Φ(a)) for a < b, stable in both tails."""
-    if a > 0:  # upper tail: use symmetry
-        a, b = -b, -a
-    return float(np.log(special.ndtr(b) - special.ndtr(a)))
-
-
-@dataclass(frozen=True)
-class Prior:
-    """A one-dimensional prior. Subclasses define the density; all methods are vectorised."""
-
-    @property
-    def support(self):
-        return (-np.inf, np.inf)
-
-    def _in_support(self, x):
-        low, high = self.support
-        return (x >= low) & (x <= high)
-
-    def logpdf(self, x):
-        raise NotImplementedError
-
-    def ppf(self, u):
-        raise NotImplementedError
-
-    def sample(self, rng, size=None):
-        """Draws by inverse transform, so any Generator seed reproduces them."""
-        return self.ppf(rng.uniform(size=size))
-
-    def describe(self):
-        """The TOML-table form of this prior."""
-        raise NotImplementedError
-
-    def scaled(self, factor):
-        """The prior of ``factor · x`` (factor > 0), e.g. CDS_o = C_D,o · S_o."""
-        raise NotImplementedError
-
-
-@dataclass(frozen=True)
-class Uniform(Prior):
-    low: float
-    high: float
-
-    @property
-    def support(self):
-        return (self.low, self.high)
-
-    def logpdf(self, x):
-        x = np.asarray(x, float)
-        return np.where(self._in_support(x), -math.log(self.high - self.low), -np.inf)
-
-    def ppf(self, u):
-        return self.low + (self.high - self.low) * np.asarray(u, float)
-
-    def describe(self):
-        return {"family": "uniform", "low": self.low, "high": self.high}
-
-    def scaled(self, factor):
-        return Uniform(self.low * factor, self.high * factor)
-
-
-@dataclass(frozen=True)
-class Normal(Prior):
-    mu: float
-    sigma: float
-
-    def logpdf(self, x):
-        z = (np.asarray(x, float) - self.mu) / self.sigma
-        return -0.5 * z * z - math.log(self.sigma) - _LOG_SQRT_2PI
-
-    def ppf(self, u):
-        return self.mu + self.sigma * special.ndtri(np.asarray(u, float))
-
-    def describe(self):
-        return {"family": "normal", "mu": self.mu, "sigma": self.sigma}
-
-    def scaled(self, factor):
-        return Normal(self.mu * factor, self.sigma * factor)
-
-
-@dataclass(frozen=True)
-class TruncNormal(Prior):
-    mu: float
-    sigma: float
-    low: float
-    high: float
-
-    @property
-    def support(self):
-        return (self.low, self.high)
-
-    @property
-    def _log_mass(self):
-        return _std_normal_logcdf_diff((self.low - self.mu) / self.sigma, (self.high - self.mu) / self.sigma)
-
-    def logpdf(self, x):
-        x = np.asarray(x, float)
-        z = (x - self.mu) / self.sigma
-        inside = -0.5 * z * z - math.log(self.sigma) - _LOG_SQRT_2PI - self._log_mass
-        return np.where(self._in_support(x), inside, -np.inf)
-
-    def ppf(self, u):
-        a, b = (self.low - self.mu) / self.sigma, (self.high - self.mu) / self.sigma
-        return stats.truncnorm.ppf(np.asarray(u, float), a, b, loc=self.mu, scale=self.sigma)
-
-    def describe(self):
-        return {"family": "truncnormal", "mu": self.mu, "sigma": self.sigma, "low": self.low, "high": self.high}
-
-    def scaled(self, factor):
-        return TruncNormal(self.mu * factor, self.sigma * factor, self.low * factor, self.high * factor)
-
-
-@dataclass(frozen=True)
-class LogNormal(Prior):
-    median: float
-    sigma_log: float
-    low: float = 0.0
-    high: float = math.inf
-
-    @property
-    def support(self):
-        return (self.low, self.high)
-
-    @property
-    def _log_mass(self):
-        mu = math.log(self.median)
-        a = -np.inf if self.low <= 0 else (math.log(self.low) - mu) / self.sigma_log
-        b = np.inf if math.isinf(self.high) else (math.log(self.high) - mu) / self.sigma_log
-        return _std_normal_logcdf_diff(a, b)
-
-    def logpdf(self, x):
-        x = np.asarray(x, float)
-        inside = self._in_support(x) & (x > 0)
-        safe = np.where(inside, x, 1.0)
-        z = (np.log(safe) - math.log(self.median)) / self.sigma_log
-        value = -0.5 * z * z - np.log(safe) - math.log(self.sigma_log) - _LOG_SQRT_2PI - self._log_mass
-        return np.where(inside, value, -np.inf)
-
-    def ppf(self, u):
-        mu = math.log(self.median)
-        a = -np.inf if self.low <= 0 else (math.log(self.low) - mu) / self.sigma_log
-        b = np.inf if math.isinf(self.high) else (math.log(self.high) - mu) / self.sigma_log
-        lo, hi = special.ndtr(a), special.ndtr(b)
-        z = special.ndtri(lo + (hi - lo) * np.asarray(u, float))
-        return np.exp(mu + self.sigma_log * z)
-
-    def describe(self):
-        out = {"family": "lognormal", "median": self.median, "sigma_log": self.sigma_log}
-        if self.low > 0:
-            out["low"] = self.low
-        if not math.isinf(self.high):
-            out["high"] = self.high
-        return out
-
-    def scaled(self, factor):
-        return LogNormal(self.median * factor, self.sigma_log, self.low * factor, self.high * factor)
-
-
-_FAMILIES = {
-    "uniform": (Uniform, ("low", "high"), ()),
-    "normal": (Normal, ("mu", "sigma"), ()),
-    "truncnormal": (TruncNormal, ("mu", "sigma", "low", "high"), ()),
-    "lognormal": (LogNormal, ("median", "sigma_log"), ("low", "high")),
-}
+PRIOR_FAMILIES = ("uniform", "normal", "truncnormal", "lognormal")   # those PriorSet evaluates in one pass
 
 
 def prior_from_table(table, file, key):
-    """Build a :class:`Prior` from a TOML inline table; refuse with file, key and fix."""
+    """Build a prior (a frozen :class:`~cpas_bayes.stats.distributions.Distribution`) from a TOML inline
+    table; refuse with file, key and fix."""
     if not isinstance(table, dict) or "family" not in table:
         raise InputError(file, f"key '{key}'", "a prior must be a table with a 'family'",
                          'write e.g. { family = "normal", mu = 1.0, sigma = 0.1 }')
     family = table["family"]
-    if family not in _FAMILIES:
+    if family not in PRIOR_FAMILIES:
         raise InputError(file, f"key '{key}.family'", f"unknown family {family!r}",
-                         f"use one of {', '.join(_FAMILIES)}")
-    cls, required, optional = _FAMILIES[family]
+                         f"use one of {', '.join(PRIOR_FAMILIES)}")
+    cls, required, optional = TABLE_FORMS[family]
     extra = set(table) - set(required) - set(optional) - {"family"}
     if extra:
         raise InputError(file, f"key '{key}'", f"unexpected numbers {sorted(extra)} for a {family} prior",
@@ -367,7 +195,8 @@ class PriorSet:
     def __init__(self, priors):
         self.priors = list(priors)
         for p in self.priors:
-            _log_normaliser(p)  # refuses a family without a batched form
+            if not isinstance(p, (Uniform, Normal, TruncNormal, LogNormal)):
+                raise TypeError(f"no batched form for {type(p).__name__}")
         self.family = np.array([self._UNIFORM if type(p) is Uniform else self._LOGNORMAL if type(p) is LogNormal
                                 else self._NORMAL for p in self.priors], dtype=np.int64)
         # normal: (x − mu)/sigma; lognormal: (log x − log median)/sigma_log
@@ -375,7 +204,7 @@ class PriorSet:
                              for f, p in zip(self.family, self.priors)])
         self.scale = np.array([1.0 if f == self._UNIFORM else p.sigma_log if f == self._LOGNORMAL else p.sigma
                                for f, p in zip(self.family, self.priors)])
-        self.const = np.array([_log_normaliser(p) for p in self.priors])
+        self.const = np.array([p.log_normaliser() for p in self.priors])
         self.low = np.array([p.support[0] for p in self.priors], dtype=float)
         self.high = np.array([p.support[1] for p in self.priors], dtype=float)
 
@@ -408,15 +237,3 @@ def _prior_set_kernel(theta, family, loc, scale, low, high, const, out):
                 total += const[j]
         out[b] = total
 
-
-def _log_normaliser(prior):
-    """The x-independent part of log p(x) inside the support."""
-    if isinstance(prior, Uniform):
-        return -math.log(prior.high - prior.low)
-    if isinstance(prior, LogNormal):
-        return -math.log(prior.sigma_log) - _LOG_SQRT_2PI - prior._log_mass
-    if isinstance(prior, TruncNormal):
-        return -math.log(prior.sigma) - _LOG_SQRT_2PI - prior._log_mass
-    if isinstance(prior, Normal):
-        return -math.log(prior.sigma) - _LOG_SQRT_2PI
-    raise TypeError(f"no batched form for {type(prior).__name__}")

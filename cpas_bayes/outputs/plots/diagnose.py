@@ -14,13 +14,10 @@
 
 from __future__ import annotations
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
 
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from cpas_bayes.outputs.plots.fit import finish_residual_figure, shade_phases  # noqa: E402
+from cpas_bayes.outputs.plots.fit import finish_residual_figure, shade_phases
 
 _BASE = "0.45"
 _EXT = "#d95f02"

@@ -15,23 +15,22 @@
 * ``trace.png`` — traces and rank histograms per ensemble of the parameters
   with the worst R-hat.
 * ``ppc.png``, ``loo_pit.png``, ``residuals.png`` — the checks of
-  :mod:`cpas_bayes.inference.predictive_checks`.
+  :mod:`cpas_bayes.inference.predictive_checks` and
+  :mod:`cpas_bayes.inference.residuals`.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.patches import Patch
 
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
-
-from cpas_bayes.inference import predictive_checks as chk  # noqa: E402
-from cpas_bayes.outputs.figures import save_figure  # noqa: E402
+from cpas_bayes.inference.check_draws import channel_sigma, posterior_matrix, posterior_median, predict_draws
+from cpas_bayes.inference.predictive_checks import STATISTICS, run_checks
+from cpas_bayes.inference.residuals import PARETO_K_LIMIT, stage_timing_medians
+from cpas_bayes.outputs.figures import save_figure
 
 _ACC = "#1f9bd1"
 _MODEL = "#d95f02"
@@ -93,9 +92,9 @@ def _mark_starts(ax, starts, label=True):
 
 def _band_draws(fit, n_draws, rng):
     model = fit.model
-    draws = chk.posterior_matrix(fit.tree, model.names).reshape(-1, model.ndim)
+    draws = posterior_matrix(fit.tree, model.names).reshape(-1, model.ndim)
     pick = rng.choice(draws.shape[0], size=min(n_draws, draws.shape[0]), replace=False)
-    return chk.predict_draws(model, draws[pick])
+    return predict_draws(model, draws[pick])
 
 
 def _save(fig, path):
@@ -123,8 +122,8 @@ def plot_bands(fit, pred):
     u = model.test.units
     area = u.label("area")
     t = obs.time
-    timing = chk.stage_timing_medians(fit)
-    s_bar = chk.posterior_median(tree, "load_scale", 1.0)
+    timing = stage_timing_medians(fit)
+    s_bar = posterior_median(tree, "load_scale", 1.0)
     lc_row = {int(c): r for r, c in enumerate(obs.lc_index)}
     n_cols = model.n_chutes + 1
     n_rows = 1 + model.n_stages
@@ -194,15 +193,15 @@ def plot_loads(fit, pred, rng):
 
     data = to_load(obs.acc)
     model_bands = _quantile_bands(to_load(pred["acc"]))
-    sigma_acc, _ = chk.channel_sigma(obs)   # marginal 1-sigma of the channel (independent + q̄ parts)
+    sigma_acc, _ = channel_sigma(obs)   # marginal 1-sigma of the channel (independent + q̄ parts)
     noisy = pred["acc"] + pred["noise_acc"][:, None] * sigma_acc * rng.standard_normal(pred["acc"].shape)
     predictive = np.quantile(to_load(noisy), (0.05, 0.95), axis=0)
-    s_bar = chk.posterior_median(tree, "load_scale", 1.0)
+    s_bar = posterior_median(tree, "load_scale", 1.0)
     cells = None
     if obs.lc_index.size:
         weights = model.chute_weight[obs.lc_index][:, None]
         cells = u.from_si((s_bar * (qbar * obs.lc - weights * g)).sum(axis=0), "force")
-    timing = chk.stage_timing_medians(fit)
+    timing = stage_timing_medians(fit)
     K = model.n_stages
     fig = plt.figure(figsize=(max(10, 4.2 * K), 8), constrained_layout=True)
     grid = fig.add_gridspec(2, K)
@@ -366,7 +365,7 @@ def plot_trace(fit, names):
 def plot_ppc(result):
     """Observed statistic against its replicated distribution, standardised, p-values annotated."""
     table = result.table
-    stats = list(chk.STATISTICS)
+    stats = list(STATISTICS)
     rows = table[["parachute", "stage", "stage_label"]].drop_duplicates().reset_index(drop=True)
     fig, axes = plt.subplots(1, len(stats), figsize=(3.3 * len(stats), 0.42 * len(rows) + 2.2),
                              constrained_layout=True, sharey=True, squeeze=False)
@@ -482,7 +481,7 @@ def plot_residuals(report):
             hk = report.high_pareto_k
             top = np.nanmax(np.abs(res)) if res.size else 1.0
             ax.plot(hk["time"], np.full(hk.shape[0], top), "v", color="crimson", ms=6, zorder=3,
-                    label=f"Pareto k > {chk.PARETO_K_LIMIT} (all channels of the bin)")
+                    label=f"Pareto k > {PARETO_K_LIMIT} (all channels of the bin)")
         row = report.overall(channel)
         ax.set_title(f"{channel}: mean {row['mean']:+.2f}, sd {row['sd']:.2f}, lag-1 ACF {row.acf1:+.2f}, "
                      f"Ljung–Box p = {row.ljung_box_p:.2g}", fontsize=9)
@@ -508,7 +507,7 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0):
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(rng)
-    checks = chk.run_checks(fit, rng=rng) if checks is None else checks
+    checks = run_checks(fit, rng=rng) if checks is None else checks
     pred = _band_draws(fit, n_draws, rng)
     paths = [_save(plot_bands(fit, pred), out / "bands.png"),
              _save(plot_loads(fit, pred, rng), out / "loads.png")]

@@ -1,4 +1,5 @@
-"""Figures of Monte Carlo loads (cpas_bayes.loads.montecarlo) and load comparisons (cpas_bayes.loads.compare).
+"""Figures of Monte Carlo loads (cpas_bayes.loads.montecarlo), the n_p-vs-n fill-time study
+(cpas_bayes.loads.fill_time) and load comparisons (cpas_bayes.loads.compare).
 
 ``plot_peak_loads``: histograms of the peak loads per cluster stage, total
 and per parachute. ``plot_fill_times``: peak fill times per parachute and
@@ -11,13 +12,9 @@ values in the test bundle's units.
 
 from __future__ import annotations
 
-import matplotlib
-
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.ticker import MaxNLocator  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 _ACC = "#1f9bd1"      # accelerometer (as the reduction figures)
 _CELLS = "#7b3294"    # load-cell sum

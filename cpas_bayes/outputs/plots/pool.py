@@ -12,14 +12,10 @@ predictive cloud of the correlated pair, with ρ in the title.
 
 from __future__ import annotations
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
 
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from cpas_bayes.outputs.figures import save_figure  # noqa: E402
+from cpas_bayes.outputs.figures import save_figure
 
 _TEST = "#3b6ea5"        # per-test posteriors
 _POPULATION = "#c0392b"  # population predictive

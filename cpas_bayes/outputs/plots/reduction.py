@@ -7,14 +7,10 @@ with each window's ratio. All in the bundle's units.
 
 from __future__ import annotations
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
 
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from cpas_bayes.data.reduction import running_mean  # noqa: E402
+from cpas_bayes.data.friction import running_mean
 
 _ACC = "#1f9bd1"     # accelerometer (cyan-ish, as in the seed's figures)
 _CELLS = "#7b3294"   # load-cell sum (purple)

@@ -9,12 +9,9 @@ All values in the bundle's (or the given) units.
 
 from __future__ import annotations
 
-import matplotlib
+import matplotlib.pyplot as plt
 
-matplotlib.use("Agg")
-
-import matplotlib.pyplot as plt  # noqa: E402
-from cpas_bayes.core.units import unit_system  # noqa: E402
+from cpas_bayes.core.units import unit_system
 
 _ACC = "#1f9bd1"    # accelerometer channel
 _CELLS = "#7b3294"  # load-cell channel

@@ -1,0 +1,7 @@
+"""``python -m cpas_bayes``: the command line."""
+
+import sys
+
+from cpas_bayes.app.cli import main
+
+sys.exit(main())

@@ -1,0 +1,26 @@
+"""Files of a comparison of measured peak loads with predicted ones (``cpas-bayes compare``).
+
+:func:`write_comparison` writes a :class:`cpas_bayes.loads.compare.LoadComparison`:
+``compare.json`` (``comparison.to_json()`` plus the caller's extra entries;
+non-finite numbers become null) and ``compare.png``
+(:func:`cpas_bayes.outputs.plots.montecarlo.plot_load_comparison`), each atomically.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from cpas_bayes.core.files import jsonable
+from cpas_bayes.loads.compare import LoadComparison
+from cpas_bayes.outputs.figures import write_json_and_figure
+from cpas_bayes.outputs.plots.montecarlo import plot_load_comparison
+
+
+def write_comparison(comparison: LoadComparison, out, extra=None):
+    """Write compare.json and compare.png into ``out`` (atomically); return their paths."""
+    out = Path(out)
+    doc = comparison.to_json()
+    doc.update(extra or {})
+    paths = {"json": out / "compare.json", "png": out / "compare.png"}
+    write_json_and_figure(paths["json"], jsonable(doc), paths["png"], plot_load_comparison(comparison))
+    return paths

@@ -1,0 +1,64 @@
+"""Files of a Monte Carlo (``cpas-bayes montecarlo``) and of the n_p-vs-n fill-time study.
+
+:func:`write_monte_carlo` writes, for a :class:`cpas_bayes.loads.montecarlo.MonteCarloResult`:
+``runs.csv`` (``result.frame()``: one row per run in the like-test's units,
+columns as :mod:`cpas_bayes.loads.montecarlo` lists them), ``summary.json``
+(``result.summary()``: per stage peak-load, peak-time, t_fp and load-share
+quantiles 1/5/50/95/99 %, mean and sd; configuration, mode, runtime, runs/s;
+plus the caller's extra entries), ``peak_loads.png`` and ``fill_times.png``
+(:mod:`cpas_bayes.outputs.plots.montecarlo`).
+
+:func:`write_fill_time_comparison` writes a
+:class:`cpas_bayes.loads.fill_time.FillTimeComparison`: ``np_vs_n.json`` and
+``fill_time_np_vs_n.png``.
+
+Every file is written atomically; non-finite numbers become JSON null.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+
+from cpas_bayes.core.files import jsonable, write_csv, write_json
+from cpas_bayes.loads.fill_time import FillTimeComparison
+from cpas_bayes.loads.montecarlo import MonteCarloResult
+from cpas_bayes.outputs.figures import save_figure, write_json_and_figure
+from cpas_bayes.outputs.plots.montecarlo import plot_fill_time_np_vs_n, plot_fill_times, plot_peak_loads
+from cpas_bayes.population.memo import Memo
+
+
+def write_monte_carlo(result: MonteCarloResult, out, memo: Memo | None = None, extra=None):
+    """Write runs.csv, summary.json, peak_loads.png and fill_times.png into ``out`` (each atomically).
+
+    ``memo`` adds the pooled tests' t_fp ranges to the fill-time figure;
+    ``extra`` entries are added to summary.json (seed, command line).
+    Everything is built before anything is written.
+    """
+    out = Path(out)
+    table = result.frame()
+    summary = result.summary()
+    summary.update(extra or {})
+    figures = {"peak_loads.png": plot_peak_loads(result), "fill_times.png": plot_fill_times(result, memo)}
+    paths = {"csv": out / "runs.csv", "json": out / "summary.json"}
+    try:
+        write_csv(paths["csv"], table, float_format="%.8g")
+        write_json(paths["json"], jsonable(summary))
+        for name, fig in figures.items():
+            paths[name] = out / name
+            save_figure(fig, paths[name], dpi=110)
+    finally:
+        for fig in figures.values():
+            plt.close(fig)
+    return paths
+
+
+def write_fill_time_comparison(comparison: FillTimeComparison, out, extra=None):
+    """Write np_vs_n.json and fill_time_np_vs_n.png into ``out`` (atomically); return their paths."""
+    out = Path(out)
+    doc = comparison.to_json()
+    doc.update(extra or {})
+    paths = {"json": out / "np_vs_n.json", "png": out / "fill_time_np_vs_n.png"}
+    write_json_and_figure(paths["json"], jsonable(doc), paths["png"], plot_fill_time_np_vs_n(comparison))
+    return paths

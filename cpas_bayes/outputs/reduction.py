@@ -1,0 +1,34 @@
+"""Output of a reduction: ``reduced.csv``, ``reduction.json`` and ``reduction.png``.
+
+The table and the JSON are in the bundle's units; the columns and keys are
+those of :class:`cpas_bayes.data.reduction.Reduction` (``csv_columns``,
+``to_json``), the figure that of :mod:`cpas_bayes.outputs.plots.reduction`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+
+from cpas_bayes.core.files import write_csv, write_json
+from cpas_bayes.data.reduction import Reduction
+from cpas_bayes.outputs.figures import save_figure
+from cpas_bayes.outputs.plots.reduction import plot_reduction
+
+
+def write_reduction(reduction: Reduction, out):
+    """Write reduced.csv, reduction.json and reduction.png into folder ``out``; return their paths."""
+    out = Path(out)
+    # Build everything before writing anything, so a failure leaves no partial output.
+    table = reduction.to_bundle_units(reduction.csv_columns)
+    summary = reduction.to_json()
+    fig = plot_reduction(reduction)
+    paths = {"csv": out / "reduced.csv", "json": out / "reduction.json", "png": out / "reduction.png"}
+    try:
+        write_csv(paths["csv"], table, float_format="%.9g")
+        write_json(paths["json"], summary)
+        save_figure(fig, paths["png"], dpi=110)
+    finally:
+        plt.close(fig)
+    return paths
