@@ -1,0 +1,126 @@
+"""Reading what users hand us, within stated limits: TOML documents and names.
+
+Every file the package reads as configuration (bundle ``test.toml``, prior
+files, campaign configs, memos) goes through :func:`read_toml`, and every name
+that can become part of a path (test names, parachute ids, kinds, configuration
+names) through :func:`check_name`. A refusal is an :class:`InputError` naming
+the file, the key and the fix, raised before any work starts.
+
+Limits (stated in the README's reliability section):
+
+* a TOML file is at most ``MAX_TOML_BYTES``; UTF-8, with or without a byte-order mark;
+* tables and arrays nest at most ``MAX_TOML_DEPTH`` deep;
+* integers fit in 64 bits (the TOML specification's own range; ``tomllib``
+  does not enforce it, and a 400-digit integer would overflow later as a float);
+* a string value is at most ``MAX_STRING`` characters;
+* a name is 1–``MAX_NAME`` printable characters, no path separator, no
+  leading dot or surrounding space: one path component that cannot climb out
+  of the folder it is placed in.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+from cpas_bayes.core.errors import InputError
+
+MAX_TOML_BYTES = 5_000_000
+MAX_TOML_DEPTH = 16
+MAX_STRING = 10_000
+MAX_NAME = 64
+_INT_LIMIT = 2**63
+
+
+def read_toml(path, error=InputError, fix_syntax="correct the TOML syntax at that line"):
+    """The document of TOML file ``path``, checked against the limits above.
+
+    ``error`` is the :class:`InputError` subclass to raise (e.g. ``BundleError``).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise error(path, "", "is a folder, not a TOML file", "give the path of the .toml file")
+    if not path.is_file():
+        raise error(path, "", "file not found", "check the path")
+    size = path.stat().st_size
+    if size > MAX_TOML_BYTES:
+        raise error(path, "", f"{size:,} bytes, more than the {MAX_TOML_BYTES:,} a TOML input may have",
+                    "this is not a configuration file; check the path")
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")  # a byte-order mark (some editors add one) is not content
+    except UnicodeDecodeError as exc:
+        raise error(path, f"byte {exc.start}", "not UTF-8 text",
+                    "save the file as UTF-8 (e.g. from Latin-1: iconv -f latin1 -t utf-8)") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise error(path, "", f"not valid TOML ({exc})", fix_syntax) from None
+    except RecursionError:
+        raise error(path, "", f"arrays or tables nested more than {MAX_TOML_DEPTH} deep",
+                    "flatten the document") from None
+    _check_values(doc, path, error, "", 0)
+    return doc
+
+
+def _check_values(value, path, error, where, depth):
+    if depth > MAX_TOML_DEPTH:
+        raise error(path, f"key '{where}'", f"arrays or tables nested more than {MAX_TOML_DEPTH} deep",
+                    "flatten the document")
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if len(key) > MAX_STRING:
+                raise error(path, f"key '{key[:40]}…'", f"a key of {len(key):,} characters", "use a short key")
+            _check_values(item, path, error, f"{where}.{key}" if where else key, depth + 1)
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            _check_values(item, path, error, f"{where}[{i}]", depth + 1)
+    elif isinstance(value, bool):
+        return
+    elif isinstance(value, int):
+        if abs(value) >= _INT_LIMIT:
+            raise error(path, f"key '{where}'", "an integer beyond 64 bits",
+                        "give a number in range (TOML integers are 64-bit)")
+    elif isinstance(value, str) and len(value) > MAX_STRING:
+        raise error(path, f"key '{where}'", f"a string of {len(value):,} characters (limit {MAX_STRING:,})",
+                    "shorten it")
+
+
+def name_problem(value, max_length=MAX_NAME):
+    """Why ``value`` cannot be a name (one path component), or ``None`` if it can."""
+    if not isinstance(value, str):
+        return f"a name must be text, got {type(value).__name__}"
+    if not value:
+        return "empty"
+    if len(value) > max_length:
+        return f"{len(value):,} characters, more than {max_length}"
+    if not value.isprintable():
+        return "contains a control character (newline, tab, escape…)"
+    if value != value.strip():
+        return "starts or ends with a space"
+    if any(c in value for c in '/\\:'):
+        return "contains a path separator ('/', '\\\\' or ':')"
+    if value.startswith("."):
+        return "starts with '.'"
+    return None
+
+
+def check_name(value, file, where, what="name", error=InputError, max_length=MAX_NAME):
+    """``value`` if it is a safe name, else ``error`` naming the file and the key."""
+    problem = name_problem(value, max_length)
+    if problem is not None:
+        shown = repr(value[:40] + ("…" if len(value) > 40 else "")) if isinstance(value, str) else repr(value)
+        raise error(file, where, f"{what} {shown} cannot be used: {problem}",
+                    f"use 1–{max_length} letters, digits, '-', '_', '.', '+' or spaces, e.g. 'EDU-D3'")
+    return value
+
+
+def inside(parent, name):
+    """``parent / name`` for a checked name, refusing anything that would leave ``parent`` (defence in depth)."""
+    parent = Path(parent)
+    problem = name_problem(name, max_length=255)
+    child = parent / name
+    if problem is not None or child.resolve().parent != parent.resolve():
+        raise InputError(parent, f"name {name!r}", f"would place a file outside {parent}",
+                         "rename the test, parachute or configuration to a plain name")
+    return child
