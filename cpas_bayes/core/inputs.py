@@ -15,11 +15,21 @@ Limits (stated in the README's reliability section):
 * a string value is at most ``MAX_STRING`` characters;
 * a name is 1–``MAX_NAME`` printable characters, no path separator, no
   leading dot or surrounding space: one path component that cannot climb out
-  of the folder it is placed in.
+  of the folder it is placed in;
+* free text that is printed (labels, phases, column names) is one line of
+  printable characters (no newline, no terminal escape), at most ``MAX_TEXT``;
+* a key that is not one of the format's keys is refused with the nearest valid
+  name (:func:`check_keys`): a misspelt ``weight_sigm`` is an error, not a
+  silently ignored line.
+
+Text from a file that is shown in a message goes through :func:`shown`, so a
+refusal cannot carry a terminal escape or a megabyte of text to a user.
 """
 
 from __future__ import annotations
 
+import difflib
+import sys
 import tomllib
 from pathlib import Path
 
@@ -29,6 +39,7 @@ MAX_TOML_BYTES = 5_000_000
 MAX_TOML_DEPTH = 16
 MAX_STRING = 10_000
 MAX_NAME = 64
+MAX_TEXT = 128
 _INT_LIMIT = 2**63
 
 
@@ -50,12 +61,18 @@ def read_toml(path, error=InputError, fix_syntax="correct the TOML syntax at tha
     try:
         text = raw.decode("utf-8-sig")  # a byte-order mark (some editors add one) is not content
     except UnicodeDecodeError as exc:
-        raise error(path, f"byte {exc.start}", "not UTF-8 text",
+        if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
+            raise error(path, "", "UTF-16 text, not UTF-8", "save the file as UTF-8") from None
+        line = raw[:exc.start].count(b"\n") + 1
+        raise error(path, f"line {line} (byte {exc.start})", "not UTF-8 text",
                     "save the file as UTF-8 (e.g. from Latin-1: iconv -f latin1 -t utf-8)") from None
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise error(path, "", f"not valid TOML ({exc})", fix_syntax) from None
+    except ValueError:  # Python's own limit on the digits of an integer literal
+        raise error(path, "", f"an integer literal of more than {sys.get_int_max_str_digits()} digits",
+                    "give numbers with a sensible count of digits (TOML integers are 64-bit)") from None
     except RecursionError:
         raise error(path, "", f"arrays or tables nested more than {MAX_TOML_DEPTH} deep",
                     "flatten the document") from None
@@ -65,12 +82,14 @@ def read_toml(path, error=InputError, fix_syntax="correct the TOML syntax at tha
 
 def _check_values(value, path, error, where, depth):
     if depth > MAX_TOML_DEPTH:
-        raise error(path, f"key '{where}'", f"arrays or tables nested more than {MAX_TOML_DEPTH} deep",
+        raise error(path, f"key '{shown(where, 80, quote=False)}'",
+                    f"arrays or tables nested more than {MAX_TOML_DEPTH} deep",
                     "flatten the document")
     if isinstance(value, dict):
         for key, item in value.items():
             if len(key) > MAX_STRING:
-                raise error(path, f"key '{key[:40]}…'", f"a key of {len(key):,} characters", "use a short key")
+                raise error(path, f"key '{shown(key, quote=False)}'", f"a key of {len(key):,} characters",
+                            "use a short key")
             _check_values(item, path, error, f"{where}.{key}" if where else key, depth + 1)
     elif isinstance(value, list):
         for i, item in enumerate(value):
@@ -79,10 +98,11 @@ def _check_values(value, path, error, where, depth):
         return
     elif isinstance(value, int):
         if abs(value) >= _INT_LIMIT:
-            raise error(path, f"key '{where}'", "an integer beyond 64 bits",
+            raise error(path, f"key '{shown(where, 80, quote=False)}'", "an integer beyond 64 bits",
                         "give a number in range (TOML integers are 64-bit)")
     elif isinstance(value, str) and len(value) > MAX_STRING:
-        raise error(path, f"key '{where}'", f"a string of {len(value):,} characters (limit {MAX_STRING:,})",
+        raise error(path, f"key '{shown(where, 80, quote=False)}'",
+                    f"a string of {len(value):,} characters (limit {MAX_STRING:,})",
                     "shorten it")
 
 
@@ -109,10 +129,72 @@ def check_name(value, file, where, what="name", error=InputError, max_length=MAX
     """``value`` if it is a safe name, else ``error`` naming the file and the key."""
     problem = name_problem(value, max_length)
     if problem is not None:
-        shown = repr(value[:40] + ("…" if len(value) > 40 else "")) if isinstance(value, str) else repr(value)
-        raise error(file, where, f"{what} {shown} cannot be used: {problem}",
+        raise error(file, where, f"{what} {shown(value)} cannot be used: {problem}",
                     f"use 1–{max_length} letters, digits, '-', '_', '.', '+' or spaces, e.g. 'EDU-D3'")
     return value
+
+
+def text_problem(value, max_length=MAX_TEXT):
+    """Why ``value`` cannot be printed as one line of free text, or ``None`` if it can."""
+    if not isinstance(value, str):
+        return f"must be text, got {type(value).__name__}"
+    if not value.strip():
+        return "empty"
+    if len(value) > max_length:
+        return f"{len(value):,} characters, more than {max_length}"
+    if not value.isprintable():
+        return "contains a control character (newline, tab, escape…)"
+    return None
+
+
+def check_text(value, file, where, what="text", error=InputError, max_length=MAX_TEXT):
+    """``value`` if it is one printable line of at most ``max_length`` characters, else ``error``."""
+    problem = text_problem(value, max_length)
+    if problem is not None:
+        raise error(file, where, f"{what} {shown(value)} cannot be used: {problem}",
+                    f"write one line of at most {max_length} printable characters")
+    return value
+
+
+def shown(value, limit=40, quote=True):
+    """``value`` as it may appear in a message: control characters escaped, cut to ``limit`` characters."""
+    if not isinstance(value, str):
+        return repr(value)[:limit]
+    cut = value[:limit] + ("…" if len(value) > limit else "")
+    if quote:
+        return repr(cut)
+    return cut if cut.isprintable() else repr(cut)[1:-1]
+
+
+def nearest(word, choices):
+    """The valid name in ``choices`` closest to ``word`` (case first, then spelling), or ``None``."""
+    if not isinstance(word, str):
+        return None
+    choices = [str(c) for c in choices]
+    for c in choices:
+        if c.lower() == word.lower():
+            return c
+    close = difflib.get_close_matches(word, choices, n=1, cutoff=0.6)
+    if not close:
+        by_lower = {c.lower(): c for c in choices}
+        close = [by_lower[m] for m in difflib.get_close_matches(word.lower(), list(by_lower), n=1, cutoff=0.6)]
+    return close[0] if close else None
+
+
+def check_keys(table, valid, file, where="", error=InputError, what="key"):
+    """Refuse the first key of ``table`` that is not in ``valid``, naming the nearest valid one.
+
+    ``where`` is the dotted path of the table (``"vehicle"``; ``""`` for the top level).
+    """
+    for key in table:
+        if key in valid:
+            continue
+        place = f"{where}.{key}" if where else key
+        near = nearest(key, valid)
+        listed = ", ".join(valid)
+        fix = (f"did you mean '{near}'? (valid: {listed})" if near else f"remove it or use one of: {listed}")
+        raise error(file, f"key '{shown(place, 80, quote=False)}'", f"unknown {what} {shown(key)}", fix)
+    return table
 
 
 def inside(parent, name):
