@@ -29,7 +29,7 @@ READ_REFUSALS = [
     # id, bytes, place named (None: the file only), problem named
     ("400-digit integer", b"a = " + b"9" * 400 + b"\n", "key 'a'", "an integer beyond 64 bits"),
     ("5000-digit integer", b"a = " + b"9" * 5000 + b"\n", None, "an integer literal of more than"),
-    ("100,000-deep array", b"a = " + b"[" * 100_000 + b"]" * 100_000 + b"\n", None, "nested more than 16 deep"),
+    ("100,000-deep array", b"b = 1\na = " + b"[" * 100_000 + b"]" * 100_000 + b"\n", "line 2", "nested more than 16"),
     ("deep inline tables", b"a = " + b"{b = " * 40 + b"1" + b"}" * 40 + b"\n", "key 'a.b.b.b", "nested more"),
     ("Latin-1", "a = 1\nlabel = \"caf\xe9\"\n".encode("latin-1"), "line 2 (byte 18)", "not UTF-8 text"),
     ("UTF-16", "a = 1\n".encode("utf-16"), None, "UTF-16 text, not UTF-8"),

@@ -74,10 +74,26 @@ def read_toml(path, error=InputError, fix_syntax="correct the TOML syntax at tha
         raise error(path, "", f"an integer literal of more than {sys.get_int_max_str_digits()} digits",
                     "give numbers with a sensible count of digits (TOML integers are 64-bit)") from None
     except RecursionError:
-        raise error(path, "", f"arrays or tables nested more than {MAX_TOML_DEPTH} deep",
+        raise error(path, _deepest_line(text), f"arrays or tables nested more than {MAX_TOML_DEPTH} deep",
                     "flatten the document") from None
     _check_values(doc, path, error, "", 0)
     return doc
+
+
+def _deepest_line(text):
+    """'line N' where brackets first nest beyond the limit (strings ignored: a hint for a document tomllib
+    could not even parse)."""
+    depth, line = 0, 1
+    for char in text:
+        if char == "\n":
+            line += 1
+        elif char in "[{":
+            depth += 1
+            if depth > MAX_TOML_DEPTH:
+                return f"line {line}"
+        elif char in "]}":
+            depth -= 1
+    return ""
 
 
 def _check_values(value, path, error, where, depth):
