@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -260,6 +261,140 @@ REFUSALS = [
 ]
 
 
+# Issue #18: what a careless or adversarial user hands over, refused by name before any work.
+
+
+def _edit_toml_text(files, old, new):
+    text = files.toml_path.read_text(encoding="utf-8")
+    assert old in text
+    files.toml_path.write_text(text.replace(old, new, 1), encoding="utf-8")
+
+
+def _scale_time(files, factor, keep=None):
+    """Multiply data.csv's time by ``factor`` (keeping only the first ``keep`` data rows if given)."""
+    rows = files.read_rows()
+    rows = rows[:keep + 1] if keep else rows
+    for row in rows[1:]:
+        row[0] = repr(float(row[0]) * factor)
+    files.write_rows(rows)
+
+
+def _trailing_comma(files, header=False):
+    rows = files.read_rows()
+    files.write_rows([row + [""] if header or k else row for k, row in enumerate(rows)])
+
+
+def _extra_cell(files, row):
+    rows = files.read_rows()
+    rows[row - 1].append("7")
+    files.write_rows(rows)
+
+
+def _huge_name(files):
+    _edit_toml_text(files, 'name = "EX-drogue"', 'name = "' + "x" * 50_000_000 + '"')
+
+
+ISSUE_18 = [
+    # 1. names that become paths or reach a terminal
+    ("name climbs out", lambda f: f.set_key("name", value="../../victim"), "test.toml", "key 'name'",
+     "test name '../../victim' cannot be used: contains a path separator"),
+    ("name too long", lambda f: f.set_key("name", value="x" * 65), "test.toml", "key 'name'",
+     "65 characters, more than 64"),
+    ("name of 100,000 characters", lambda f: f.set_key("name", value="x" * 100_000), "test.toml", "key 'name'",
+     "a string of 100,000 characters"),
+    ("name of 50 million characters", _huge_name, "test.toml", None, "bytes, more than the 5,000,000"),
+    ("id with a slash", lambda f: f.set_key("parachute", 0, "id", value="D/3"), "test.toml",
+     "key 'parachute[0].id'", "parachute id 'D/3' cannot be used: contains a path separator"),
+    ("id with a newline", lambda f: f.set_key("parachute", 1, "id", value="D6\nD7"), "test.toml",
+     "key 'parachute[1].id'", "parachute id 'D6\\nD7' cannot be used: contains a control character"),
+    ("id with an ANSI escape", lambda f: f.set_key("parachute", 0, "id", value="\x1b[31mD3"), "test.toml",
+     "key 'parachute[0].id'", "'\\x1b[31mD3' cannot be used: contains a control character"),
+    ("id like a sigma column", lambda f: f.set_key("parachute", 1, "id", value="D3_sigma"), "test.toml",
+     "key 'parachute[1].id'", "ends with '_sigma'"),
+    ("stage label with a newline", lambda f: f.set_key("parachute", 0, "stage", 0, "label", value="reefed\n1"),
+     "test.toml", "key 'parachute 'D3'.stage[0].label'", "stage label 'reefed\\n1' cannot be used"),
+    ("phase with an escape", lambda f: f.set_key("phase", value="\x1b]0;owned\x07"), "test.toml", "key 'phase'",
+     "contains a control character"),
+    # 2. TOML that crashed the reader
+    ("400-digit integer", lambda f: _edit_toml_text(f, "weight = 20263.7", "weight = " + "9" * 400), "test.toml",
+     "key 'vehicle.weight'", "an integer beyond 64 bits"),
+    ("100,000-deep array", lambda f: _edit_toml_text(f, 'phase = "drogue"', "phase = " + "[" * 100_000
+                                                       + "]" * 100_000), "test.toml", "line 3", "nested more than 16"),
+    # 3. misspelt keys and values
+    ("misspelt vehicle key", lambda f: f.set_key("vehicle", "weight_sigm", value=100.0), "test.toml",
+     "key 'vehicle.weight_sigm'", "unknown key 'weight_sigm'. Fix: did you mean 'weight_sigma'?"),
+    ("misspelt top-level key", lambda f: f.set_key("unit", value="SI"), "test.toml", "key 'unit'",
+     "did you mean 'units'?"),
+    ("misspelt parachute key", lambda f: f.set_key("parachute", 1, "loadcell", value="F_D6"), "test.toml",
+     "key 'parachute[1].loadcell'", "did you mean 'load_cell'?"),
+    ("misspelt stage key", lambda f: f.set_key("parachute", 0, "stage", 1, "start_sigm", value=0.1), "test.toml",
+     "key 'parachute 'D3'.stage[1].start_sigm'", "did you mean 'start_sigma'?"),
+    ("[sigma] for a column the bundle does not use", lambda f: f.set_key("sigma", "F_D7", value=40.0), "test.toml",
+     "key 'sigma.F_D7'", "unknown key 'F_D7'. Fix: did you mean"),
+    ("kind in capitals", lambda f: f.set_key("parachute", 0, "kind", value="Drogue"), "test.toml",
+     "key 'parachute 'D3'.kind'", "unknown value 'Drogue'. Fix: did you mean 'drogue'?"),
+    # 4. values the reduction cannot handle
+    ("G = 1e300", lambda f: f.set_cell(30, "G", "1e300"), "data.csv", "row 30, column 'G'",
+     "G = 1e+300 g is outside -50 … 50 g"),
+    ("qbar = 1e-300", lambda f: f.set_cell(31, "qbar", "1e-300"), "data.csv", "row 31, column 'qbar'",
+     "qbar = 1e-300 lbf/ft² is outside 0.00208854 … 20885.4 lbf/ft²"),
+    ("qbar sigma of 1e300", lambda f: f.set_cell(32, "qbar_sigma", "1e300"), "data.csv",
+     "row 32, column 'qbar_sigma'", "a 1-sigma cannot exceed"),
+    ("negative airspeed", lambda f: f.set_cell(33, "airspeed", "-412"), "data.csv", "row 33, column 'airspeed'",
+     "airspeed = -412 ft/s is outside 0 …"),
+    ("density in lbm/ft³", lambda f: f.set_cell(34, "density", "0.0765"), "data.csv", "row 34, column 'density'",
+     "not lbm/ft³"),
+    ("load of 1e300", lambda f: f.set_cell(35, "F_D6", "1e300"), "data.csv", "row 35, column 'F_D6'",
+     "F_D6 = 1e+300 lbf is outside"),
+    ("time in milliseconds", lambda f: _scale_time(f, 1000.0), "data.csv", "row 1602, column 'time'",
+     "the record lasts 16000 s, more than an hour"),
+    ("samples 20 s apart", lambda f: _scale_time(f, 2000.0, keep=11), "data.csv", "column 'time'",
+     "the median sample interval is 20 s"),
+    ("samples a microsecond apart", lambda f: _scale_time(f, 1e-4), "data.csv", "column 'time'",
+     "faster than 100000 Hz"),
+    ("diameter of 1e300", lambda f: f.set_key("parachute", 0, "diameter", value=1e300), "test.toml",
+     "key 'parachute 'D3'.diameter'", "diameter = 1e+300 ft is outside 0.328084 … 984.252 ft"),
+    ("vehicle weight of 1e300", lambda f: f.set_key("vehicle", "weight", value=1e300), "test.toml",
+     "key 'vehicle.weight'", "weight = 1e+300 lbf is outside"),
+    ("vehicle cds of 1e300", lambda f: f.set_key("vehicle", "cds", value=1e300), "test.toml", "key 'vehicle.cds'",
+     "cds = 1e+300 ft² is outside"),
+    ("infinite diameter", lambda f: _edit_toml_text(f, "diameter = 23.00", "diameter = inf"), "test.toml",
+     "key 'parachute 'D3'.diameter'", "must be a finite number, got inf"),
+    ("NaN weight sigma", lambda f: _edit_toml_text(f, "weight_sigma = 100.0", "weight_sigma = nan"), "test.toml",
+     "key 'vehicle.weight_sigma'", "must be a finite number, got nan"),
+    ("start sigma in milliseconds", lambda f: f.set_key("parachute", 0, "stage", 0, "start_sigma", value=100.0),
+     "test.toml", "key 'parachute 'D3'.stage[0].start_sigma'", "more than 10 s"),
+    ("[sigma] of 1e300", lambda f: (f.drop_column("G_sigma"), f.set_key("sigma", "G", value=1e300)), "test.toml",
+     "key 'sigma.G'", "the 1-sigma of G = 1e+300 g is outside 0 … 50 g"),
+    # 5. stage times outside the record
+    ("stage after the record", lambda f: f.set_key("parachute", 0, "stage", 1, "start", value=500.0), "test.toml",
+     "key 'parachute 'D3'.stage[1].start'",
+     "starts at 500 s, at or after the record ends (data.csv covers 0 … 16 s)"),
+    ("stage before the record", lambda f: f.set_key("parachute", 1, "stage", 0, "start", value=-50.0), "test.toml",
+     "key 'parachute 'D6'.stage[0].start'", "starts at -50 s, before the record starts"),
+    # 6. one column, two parachutes
+    ("two parachutes on one load cell", lambda f: f.set_key("parachute", 1, "load_cell", value="F_D3"), "test.toml",
+     "key 'parachute 'D6'.load_cell'", "column 'F_D3' is already the load_cell of parachute 'D3' (the reduction "
+     "would split that one load 50/50"),
+    ("load cell on the qbar column", lambda f: f.set_key("parachute", 0, "load_cell", value="qbar"), "test.toml",
+     "key 'parachute 'D3'.load_cell'", "names column 'qbar', which is a channel of the vehicle"),
+    ("fly-out angle on a load-cell column", lambda f: f.set_key("parachute", 1, "flyout_angle", value="F_D6"),
+     "test.toml", "key 'parachute 'D6'.flyout_angle'", "already the load_cell of parachute 'D6'"),
+    # 7. CSV shape and size
+    ("trailing comma on every data row", _trailing_comma, "data.csv", "row 2",
+     "the row ends with a comma (every data row does): 1 empty cell(s) beyond the header's 13 columns"),
+    ("trailing comma on every line", lambda f: _trailing_comma(f, header=True), "data.csv",
+     "row 1 (header), column 14", "the header ends with a comma: an unnamed empty last column"),
+    ("one row too long", lambda f: _extra_cell(f, 40), "data.csv", "row 40",
+     "14 cells, but the header names 13 columns"),
+    ("unnamed column", lambda f: f.rename_column("gamma", ""), "data.csv", "row 1 (header), column 7",
+     "a column has no name"),
+    ("column name with an escape", lambda f: f.rename_column("altitude", "alt\x1b[2J"), "data.csv",
+     "row 1 (header), column 9", "column name 'alt\\x1b[2J': contains a control character"),
+]
+REFUSALS += ISSUE_18
+
+
 @pytest.mark.parametrize("defect, file, place, problem", [case[1:] for case in REFUSALS],
                          ids=[case[0] for case in REFUSALS])
 def test_refusal(example_dir, bundle_files, snapshot, defect, file, place, problem):
@@ -270,8 +405,9 @@ def test_refusal(example_dir, bundle_files, snapshot, defect, file, place, probl
         read_bundle(folder)
     message = str(info.value)
     assert message.startswith(f"{folder / file}{', ' + place if place else ''}: "), message
-    assert problem in message
+    assert problem in message, message
     assert ". Fix: " in message
+    assert message.isprintable() and len(message) < 1000  # no escape, newline or megabyte reaches a terminal
     assert snapshot(folder.parent) == before
 
 
@@ -285,3 +421,53 @@ def test_trailing_blank_lines_are_not_data(example_dir, bundle_files):
 def test_missing_folder_is_refused(tmp_path):
     with pytest.raises(BundleError, match=r"folder not found\. Fix: "):
         read_bundle(tmp_path / "nowhere")
+
+
+def test_byte_order_marks_are_accepted(example_dir, bundle_files, same_test):
+    """Editors that save UTF-8 with a BOM (Notepad, Excel) write valid bundles."""
+    folder = example_dir(DROGUE)
+    expected = read_bundle(folder)
+    files = bundle_files(folder)
+    for path in (files.toml_path, files.csv_path):
+        path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    same_test(read_bundle(folder), expected, rtol=0)
+
+
+def test_the_folder_name_stands_in_for_a_missing_name_only_if_it_is_a_safe_name(example_dir, bundle_files):
+    folder = example_dir(DROGUE, "CDT-3-2 drogue")
+    bundle_files(folder).delete_key("name")
+    assert read_bundle(folder).name == "CDT-3-2 drogue"
+    hidden = example_dir(DROGUE, ".hidden")
+    bundle_files(hidden).delete_key("name")
+    with pytest.raises(BundleError) as info:
+        read_bundle(hidden)
+    assert str(info.value).startswith(f"{hidden / 'test.toml'}, key 'name': no name given, and the folder name "
+                                      "'.hidden' cannot be used: starts with '.'. Fix: add name = ")
+
+
+@pytest.mark.parametrize("limit, value, problem", [
+    ("MAX_CSV_ROWS", 1000, "1,601 data rows, more than 1,000"),
+    ("MAX_CSV_BYTES", 100_000, "bytes, more than the 100,000 a data.csv may have"),
+    ("MAX_CSV_COLUMNS", 10, "13 columns, more than 10"),
+])
+def test_data_csv_size_limits_are_checked_before_parsing(example_dir, monkeypatch, limit, value, problem):
+    """The limits (2,000,000 rows, 500 MB, 1,000 columns) lowered so that a small file exceeds them."""
+    from cpas_bayes.data import bundle_csv
+
+    monkeypatch.setattr(bundle_csv, limit, value)
+    monkeypatch.setattr(bundle_csv.pd, "read_csv", None)  # parsing would fail loudly: it must not be reached
+    folder = example_dir(DROGUE)
+    with pytest.raises(BundleError) as info:
+        read_bundle(folder)
+    assert str(info.value).startswith(f"{folder / 'data.csv'}")
+    assert problem in str(info.value) and ". Fix: " in str(info.value)
+
+
+def test_stated_limits_are_the_documented_ones():
+    from cpas_bayes.data import limits
+
+    assert (limits.MAX_CSV_ROWS, limits.MAX_CSV_BYTES, limits.MAX_DURATION, limits.MAX_SAMPLE_INTERVAL) == \
+        (2_000_000, 500_000_000, 3600.0, 10.0)
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "test-bundle.md").read_text(encoding="utf-8")
+    for spec in list(limits.CHANNELS.values()) + list(limits.VEHICLE.values()) + list(limits.PARACHUTE.values()):
+        assert spec.reason in doc, spec.reason

@@ -17,10 +17,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cpas_bayes.core.units import UNIT_SYSTEMS
+from cpas_bayes.data import limits
 from cpas_bayes.data.bundle import CSV_NAME as CSV
-from cpas_bayes.data.bundle import INFLATIONS, KINDS, read_bundle, write_bundle
+from cpas_bayes.data.bundle import (INFLATIONS, KINDS, PARACHUTE_KEYS, STAGE_KEYS, TOP_KEYS, VEHICLE_KEYS,
+                                    read_bundle, write_bundle)
 from cpas_bayes.data.bundle import TOML_NAME as TOML
 from cpas_bayes.core.errors import BundleError
+from cpas_bayes.core.inputs import name_problem
 
 REQUIRED = ("time", "G", "qbar", "airspeed", "gamma")
 EXAMPLES_PER_DEFECT = 60
@@ -28,7 +32,7 @@ SETTINGS = dict(deadline=None, derandomize=True, database=None)
 
 # Generated channels: canonical column -> (quantity, low, high). Quantity None: no unit (g, deg).
 CHANNELS = {"G": (None, -1.0, 12.0), "qbar": ("pressure", 0.5, 900.0), "airspeed": ("speed", 5.0, 900.0),
-            "gamma": (None, -90.0, 90.0), "density": ("density", 1e-4, 1.5), "altitude": ("length", 0.0, 4e4),
+            "gamma": (None, -90.0, 90.0), "density": ("density", 1e-4, 1e-3), "altitude": ("length", 0.0, 4e4),
             "F": ("force", -500.0, 4e4), "theta": (None, 0.0, 60.0)}
 
 
@@ -62,6 +66,8 @@ def floats(low, high):
 
 
 ids = st.text(string.ascii_uppercase + string.digits, min_size=1, max_size=4)
+# Any name that can be one path component (core.inputs.name_problem), Unicode included.
+names = st.text(min_size=1, max_size=12).filter(lambda s: name_problem(s) is None)
 # Names a bundle may give a parachute's columns (the canonical ones, F_<id> and theta_<id>, or others).
 COLUMN_NAMES = {"load_cell": ("F_{}", "LC_{}", "riser{}"), "flyout_angle": ("theta_{}", "angle_{}")}
 
@@ -111,7 +117,9 @@ def valid_bundles(draw, us_to_si):
 
     parachutes = []
     for pid in draw(st.lists(ids, min_size=1, max_size=4, unique=True)):
-        starts = sorted(draw(st.lists(st.integers(0, 3000), min_size=1, max_size=3, unique=True)))
+        # Stage starts inside the record: half a step after a sample that is not the last.
+        starts = [float(Decimal(t0) + (k + Decimal("0.5")) * Decimal(dt))
+                  for k in sorted(draw(st.lists(st.integers(0, n - 2), min_size=1, max_size=3, unique=True)))]
         entry = {"id": pid, "kind": draw(st.sampled_from(KINDS)), "inflation": draw(st.sampled_from(INFLATIONS)),
                  "diameter": draw(floats(0.5, 200.0)), "weight": draw(floats(0.0, 500.0))}
         if draw(st.booleans()):
@@ -121,12 +129,12 @@ def valid_bundles(draw, us_to_si):
                 entry[key] = draw(st.sampled_from(COLUMN_NAMES[key])).format(pid)
                 channel(entry[key], f"{kind}_{pid}", kind)
                 channel_sigma(entry[key], f"{kind}_{pid}", kind, optional=kind == "theta")
-        entry["stage"] = [{"label": f"stage {k + 1}", "start": s / 100, "start_sigma": 0.05}
+        entry["stage"] = [{"label": f"stage {k + 1}", "start": s, "start_sigma": 0.05}
                           for k, s in enumerate(starts)]
         entry["stage"][-1]["label"] = "full open"
         parachutes.append(entry)
 
-    doc = {"name": draw(st.text(min_size=1, max_size=12).filter(str.strip)), "units": units, "phase": "drogue",
+    doc = {"name": draw(names), "units": units, "phase": "drogue",
            "vehicle": {"weight": draw(floats(1.0, 1e5)), "weight_sigma": 100.0, "cds": draw(floats(0.0, 100.0))},
            "parachute": parachutes}
     if sigma:
@@ -316,10 +324,112 @@ def missing_sigma(draw, plan, files):
     return CSV, f"column '{channel}_sigma'", f"no 1-sigma for '{channel}'"
 
 
+# Issue #18: what a careless or adversarial user hands over.
+
+def misspelt(key):
+    """Near misses of a valid key: a letter dropped, doubled or capitalised, a plural."""
+    return st.sampled_from([key[:-1], key + key[-1], key.upper(), key.capitalize(), key + "s"]).filter(
+        lambda k: k and k != key)
+
+
+def unknown_key(draw, plan, files):
+    i = chute(draw, plan)
+    entry = plan.parachute(i)
+    sigma_keys = ["G", "qbar"] + [e[k] for e in plan.doc["parachute"] for k in ("load_cell", "flyout_angle")
+                                  if k in e]
+    where = draw(st.sampled_from(["top", "vehicle", "parachute", "stage", "sigma"]))
+    path, valid, place = {
+        "top": ((), TOP_KEYS, ""),
+        "vehicle": (("vehicle",), VEHICLE_KEYS, "vehicle."),
+        "parachute": (("parachute", i), PARACHUTE_KEYS, f"parachute[{i}]."),
+        "stage": (("parachute", i, "stage", 0), STAGE_KEYS, f"parachute '{entry['id']}'.stage[0]."),
+        "sigma": (("sigma",), tuple(sigma_keys), "sigma."),
+    }[where]
+    key = draw(st.sampled_from(valid).flatmap(misspelt).filter(lambda k: k not in valid))
+    files.set_key(*path, key, value=1.0)
+    return TOML, f"key '{place}{key}'", f"unknown key {key!r}. Fix: "
+
+
+bad_names = st.one_of(
+    st.builds(lambda a, b, sep: a + sep + b, ids, ids, st.sampled_from(["/", "\\", ":", "/../"])),
+    st.builds(lambda a, c: a + c, ids, st.sampled_from(["\n", "\r", "\t", "\x1b[31m", "\x00", "\u202e"])),
+    st.builds(lambda a: "." + a, ids), st.just(".."), st.just("../../victim"),
+    st.integers(65, 5000).map(lambda n: "x" * n))
+
+
+def unsafe_name(draw, plan, files):
+    value = draw(bad_names)
+    if draw(st.booleans()):
+        files.set_key("name", value=value)
+        return TOML, "key 'name'", "test name "
+    i = chute(draw, plan)
+    files.set_key("parachute", i, "id", value=value)
+    return TOML, f"key 'parachute[{i}].id'", "parachute id "
+
+
+def implausible_cell(draw, plan, files):
+    specs = {c: limits.CHANNELS[c] for c in ("G", "qbar", "airspeed", "gamma", "density", "altitude")
+             if c in plan.columns}
+    for e in plan.doc["parachute"]:
+        specs.update({e[k]: limits.CHANNELS[c] for k, c in (("load_cell", "F"), ("flyout_angle", "theta")) if k in e})
+    column, row = draw(st.sampled_from(sorted(specs))), rows(draw, plan)
+    low, high, _ = specs[column].limits(UNIT_SYSTEMS[plan.doc["units"]])
+    beyond = draw(floats(1.001, 1e12))
+    value = high * beyond if high > 0 else high + beyond
+    if low < 0 and draw(st.booleans()):
+        value = low * beyond
+    files.set_cell(row, column, repr(value))
+    return CSV, f"row {row}, column '{column}'", "is outside"
+
+
+def record_beyond_an_hour(draw, plan, files):
+    last = plan.n_rows + 1
+    files.set_cell(last, "time", repr(float(files.cell(2, "time")) + 3600.0 + draw(floats(0.5, 1e6))))
+    return CSV, f"row {last}, column 'time'", "more than an hour"
+
+
+def stage_outside_record(draw, plan, files):
+    i = chute(draw, plan)
+    stages = plan.parachute(i)["stage"]
+    t0, t1 = float(files.cell(2, "time")), float(files.cell(plan.n_rows + 1, "time"))
+    if draw(st.booleans()):
+        k, value, side = len(stages) - 1, t1 + draw(st.sampled_from([0.0]) | floats(1e-3, 1e4)), "after"
+    else:
+        k, value, side = 0, t0 - draw(floats(1e-3, 1e4)), "before"
+    files.set_key("parachute", i, "stage", k, "start", value=value)
+    return TOML, f"key 'parachute '{plan.parachute(i)['id']}'.stage[{k}].start'", f"{side} the record"
+
+
+def column_used_twice(draw, plan, files):
+    with_cells = [i for i, e in enumerate(plan.doc["parachute"]) if "load_cell" in e]
+    n = len(plan.doc["parachute"])
+    if n < 2 or not with_cells:  # no second parachute to share with: point a load cell at a vehicle channel
+        column = draw(st.sampled_from(REQUIRED))
+        files.set_key("parachute", 0, "load_cell", value=column)
+        return TOML, f"key 'parachute '{plan.parachute(0)['id']}'.load_cell'", "a channel of the vehicle"
+    i = draw(st.sampled_from(with_cells))
+    j = draw(st.integers(0, n - 1).filter(lambda j: j != i))
+    files.set_key("parachute", j, "load_cell", value=plan.parachute(i)["load_cell"])
+    first, second = min(i, j), max(i, j)
+    return (TOML, f"key 'parachute '{plan.parachute(second)['id']}'.load_cell'",
+            f"is already the load_cell of parachute '{plan.parachute(first)['id']}'")
+
+
+def trailing_commas(draw, plan, files):
+    header = draw(st.booleans())
+    lines = files.read_rows()
+    files.write_rows([r + [""] if header or k else r for k, r in enumerate(lines)])
+    if header:
+        return CSV, f"row 1 (header), column {len(lines[0]) + 1}", "the header ends with a comma"
+    return CSV, "row 2", "the row ends with a comma (every data row does)"
+
+
 DEFECTS = [missing_toml, missing_csv, missing_required_column, missing_named_column, non_numeric_cell,
            non_finite_cell, time_repeated, time_decreasing, qbar_not_positive, negative_sigma_cell,
            negative_sigma_entry, negative_sigma_key, unknown_units, unknown_kind, unknown_inflation,
-           stages_out_of_order, parachute_without_stages, duplicate_parachute_id, missing_sigma]
+           stages_out_of_order, parachute_without_stages, duplicate_parachute_id, missing_sigma,
+           unknown_key, unsafe_name, implausible_cell, record_beyond_an_hour, stage_outside_record,
+           column_used_twice, trailing_commas]
 
 
 # ---------------------------------------------------------------------------
@@ -342,6 +452,7 @@ def test_one_defect_is_refused_cleanly(bundle_files, snapshot, us_to_si, defect,
         assert message.startswith(f"{files.folder / file}{', ' + place if place else ''}: "), message
         assert problem in message, message
         assert ". Fix: " in message
+        assert message.isprintable() and len(message) < 1000, message
         assert snapshot(root) == before
 
 

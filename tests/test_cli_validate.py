@@ -44,6 +44,27 @@ BROKEN = {
                                "test.toml, key 'parachute[1].id'", "duplicate parachute id 'D3'"),
     "stage out of order": (lambda f: f.set_key("parachute", 0, "stage", 1, "start", value=1.0),
                            "test.toml, key 'parachute 'D3'.stage[1].start'", "stages out of time order"),
+    # issue #18: refused by validate, so that reduce and fit never meet them
+    "name climbs out": (lambda f: f.set_key("name", value="../../victim"), "test.toml, key 'name'",
+                        "test name '../../victim' cannot be used"),
+    "id with an ANSI escape": (lambda f: f.set_key("parachute", 0, "id", value="\x1b[2J\x1b[31mD3"),
+                               "test.toml, key 'parachute[0].id'", "contains a control character"),
+    "400-digit integer": (lambda f: f.toml_path.write_text(f.toml_path.read_text().replace(
+        "weight = 20263.7", "weight = " + "7" * 400)), "test.toml, key 'vehicle.weight'", "beyond 64 bits"),
+    "deep array": (lambda f: f.toml_path.write_text(f.toml_path.read_text() + "x = " + "[" * 100_000
+                                                    + "]" * 100_000 + "\n"), "test.toml, line 48", "nested more than 16 deep"),
+    "misspelt key": (lambda f: f.set_key("vehicle", "weight_sigm", value=100.0), "test.toml, key 'vehicle.weight_sigm'",
+                     "did you mean 'weight_sigma'?"),
+    "G of 1e300": (lambda f: f.set_cell(30, "G", "1e300"), "data.csv, row 30, column 'G'", "is outside -50 … 50 g"),
+    "time in ms": (lambda f: f.write_rows([r if k == 0 else [repr(float(r[0]) * 1000)] + r[1:]
+                                           for k, r in enumerate(f.read_rows())]),
+                   "data.csv, row 1602, column 'time'", "divide the column by 1000"),
+    "stage after the record": (lambda f: f.set_key("parachute", 0, "stage", 1, "start", value=500.0),
+                               "test.toml, key 'parachute 'D3'.stage[1].start'", "at or after the record ends"),
+    "shared load cell": (lambda f: f.set_key("parachute", 1, "load_cell", value="F_D3"),
+                         "test.toml, key 'parachute 'D6'.load_cell'", "already the load_cell of parachute 'D3'"),
+    "trailing commas": (lambda f: f.write_rows([r + [""] if k else r for k, r in enumerate(f.read_rows())]),
+                        "data.csv, row 2", "the row ends with a comma (every data row does)"),
 }
 
 
@@ -98,6 +119,7 @@ def test_broken_bundle_is_refused_with_one_message(broken, capsys, case):
     assert problem in err
     assert ". Fix: " in err
     assert len(err.strip().splitlines()) == 1
+    assert "\x1b" not in err.replace("\x1b[31m", "").replace("\x1b[0m", "")  # only click's own colour codes
 
 
 def test_every_refusal_is_reported_and_good_bundles_still_summarised(example_dir, broken, capsys):

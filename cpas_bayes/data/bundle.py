@@ -15,9 +15,7 @@ test's own units, atomically.
 
 from __future__ import annotations
 
-import io
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -27,7 +25,11 @@ import tomli_w
 
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.files import atomic_directory
+from cpas_bayes.core.inputs import MAX_TEXT, check_keys, check_name, check_text, name_problem, nearest, read_toml, shown
 from cpas_bayes.core.units import UNIT_SYSTEMS, UnitSystem, unit_system
+from cpas_bayes.data import limits
+from cpas_bayes.data.bundle_csv import numeric_column, read_csv, sigma_column
+from cpas_bayes.data.limits import MAX_COLUMN_NAME, check_column, check_record, check_value
 
 KINDS = ("drogue", "main", "pilot", "fbcp")
 INFLATIONS = ("infinite", "finite")
@@ -37,8 +39,6 @@ CSV_NAME = "data.csv"
 # Column -> physical quantity, for unit conversion. Angles stay in degrees.
 _COLUMN_QUANTITY = {"time": "time", "qbar": "pressure", "qbar_sigma": "pressure",
                     "airspeed": "speed", "density": "density", "altitude": "length"}
-_REQUIRED = ("time", "G", "qbar", "airspeed", "gamma")
-_OPTIONAL = ("density", "altitude")
 
 
 @dataclass(frozen=True)
@@ -145,6 +145,15 @@ class FlightTest:
 # ---------------------------------------------------------------------------
 # reading
 
+# Every key test.toml may hold (docs/test-bundle.md); any other is refused with the nearest of these.
+TOP_KEYS = ("name", "units", "phase", "vehicle", "parachute", "sigma")
+VEHICLE_KEYS = ("weight", "weight_sigma", "cds", "cds_sigma")
+PARACHUTE_KEYS = ("id", "kind", "inflation", "diameter", "weight", "weight_sigma", "load_cell", "flyout_angle",
+                  "stage")
+STAGE_KEYS = ("label", "start", "start_sigma")
+# data.csv columns with a fixed meaning: no parachute's load_cell or flyout_angle may name one of them.
+_RESERVED = ("time", "G", "qbar", "airspeed", "gamma", "density", "altitude")
+
 
 def _is_number(value):
     return isinstance(value, (int, float)) and not isinstance(value, bool)
@@ -153,11 +162,15 @@ def _is_number(value):
 class _TomlReader:
     """Typed access to test.toml that refuses with file, key and fix."""
 
-    def __init__(self, path):
+    def __init__(self, path, units=None):
         self.path = path
+        self.units = units
 
     def fail(self, key, problem, fix):
         raise BundleError(self.path, f"key '{key}'" if key else "", problem, fix)
+
+    def keys(self, table, valid, where):
+        check_keys(table, valid, self.path, where, BundleError)
 
     def table(self, doc, key, where):
         value = doc.get(key)
@@ -171,25 +184,33 @@ class _TomlReader:
         if value is None:
             self.fail(f"{where}{key}", "is missing", f"add {key} = \"...\"")
         if not isinstance(value, str) or not value.strip():
-            self.fail(f"{where}{key}", f"must be a non-empty string, got {value!r}", f"write {key} = \"...\"")
+            self.fail(f"{where}{key}", f"must be a non-empty string, got {shown(value)}", f"write {key} = \"...\"")
         if choices and value not in choices:
-            self.fail(f"{where}{key}", f"unknown value {value!r}",
-                      f"use one of {', '.join(repr(c) for c in choices)}")
+            near = nearest(value, choices)
+            self.fail(f"{where}{key}", f"unknown value {shown(value)}",
+                      (f"did you mean '{near}'? " if near else "") + f"use one of {', '.join(map(repr, choices))}")
         return value
 
-    def number(self, doc, key, where, minimum=None, positive=False, optional=False):
+    def text(self, doc, key, where, default=None, what=None, max_length=MAX_TEXT):
+        """A free-text string that is printed: one printable line."""
+        value = self.string(doc, key, where, default=default)
+        return check_text(value, self.path, f"key '{where}{key}'", what or key, BundleError, max_length)
+
+    def number(self, doc, key, where, minimum=None, positive=False, optional=False, plausible=None):
         value = doc.get(key)
         if value is None:
             if optional:
                 return None
             self.fail(f"{where}{key}", "is missing", f"add {key} = <number>")
         if not _is_number(value) or not math.isfinite(value):
-            self.fail(f"{where}{key}", f"must be a finite number, got {value!r}", f"write a number for {key}")
+            self.fail(f"{where}{key}", f"must be a finite number, got {shown(value)}", f"write a number for {key}")
         if positive and value <= 0:
             self.fail(f"{where}{key}", f"must be positive, got {value}", f"give {key} a value > 0")
         if minimum is not None and value < minimum:
             what = "a sigma cannot be negative" if key.endswith("sigma") else f"must be ≥ {minimum}"
             self.fail(f"{where}{key}", f"{what}, got {value}", f"give {key} a value ≥ {minimum}")
+        if plausible is not None:
+            check_value(value, plausible, self.units, self.path, f"{where}{key}", key)
         return float(value)
 
 
@@ -197,40 +218,62 @@ def _read_toml(path):
     if not path.is_file():
         raise BundleError(path, "", "file not found",
                           f"a bundle folder needs {TOML_NAME} and {CSV_NAME} (docs/test-bundle.md)")
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise BundleError(path, "", f"not valid TOML ({exc})", "correct the TOML syntax at that line") from None
-    except UnicodeDecodeError:
-        raise BundleError(path, "", "not UTF-8 text", "save the file as UTF-8 TOML") from None
+    return read_toml(path, error=BundleError)
+
+
+def _column_key(reader, entry, key, where, pid, owners):
+    """A parachute's ``load_cell`` / ``flyout_angle`` column name, or None; each column serves one channel."""
+    value = entry.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.strip():
+        reader.fail(f"{where}{key}", f"must name a data.csv column, got {shown(value)}",
+                    f"write {key} = \"<column name>\" or remove the key")
+    check_text(value, reader.path, f"key '{where}{key}'", key, BundleError, MAX_COLUMN_NAME)
+    if value in _RESERVED or value.endswith("_sigma"):
+        reader.fail(f"{where}{key}", f"names column '{value}', which is "
+                    + ("a sigma column" if value.endswith("_sigma") else "a channel of the vehicle"),
+                    "name the column holding the " + ("riser tension" if key == "load_cell" else "fly-out angle")
+                    + f" of parachute {pid!r}")
+    if value in owners:
+        other, other_key = owners[value]
+        share = (" (the reduction would split that one load 50/50 between them)"
+                 if key == other_key == "load_cell" else "")
+        reader.fail(f"{where}{key}", f"column '{value}' is already the {other_key} of parachute {other!r}{share}",
+                    "give each channel of each parachute its own column (a parachute without its own load cell "
+                    "has no load_cell key)")
+    owners[value] = (pid, key)
+    return value
 
 
 def _parse_parachutes(doc, reader, units):
     chutes = doc.get("parachute")
     if not isinstance(chutes, list) or not chutes:
         reader.fail("parachute", "no [[parachute]] entries", "add one [[parachute]] table per canopy")
-    parsed, seen = [], set()
+    parsed, seen, owners = [], set(), {}
     for i, entry in enumerate(chutes):
         where = f"parachute[{i}]."
         if not isinstance(entry, dict):
             reader.fail(f"parachute[{i}]", "is not a table", "write each parachute as [[parachute]]")
+        reader.keys(entry, PARACHUTE_KEYS, f"parachute[{i}]")
         pid = reader.string(entry, "id", where)
+        check_name(pid, reader.path, f"key 'parachute[{i}].id'", "parachute id", BundleError)
+        if pid.endswith("_sigma"):
+            reader.fail(f"parachute[{i}].id", f"parachute id {pid!r} ends with '_sigma', which marks sigma columns",
+                        "choose an id that does not end with '_sigma'")
         where = f"parachute '{pid}'."
         if pid in seen:
             reader.fail(f"parachute[{i}].id", f"duplicate parachute id {pid!r}", "give every parachute a unique id")
         seen.add(pid)
         kind = reader.string(entry, "kind", where, choices=KINDS)
         inflation = reader.string(entry, "inflation", where, choices=INFLATIONS)
-        diameter = reader.number(entry, "diameter", where, positive=True)
-        weight = reader.number(entry, "weight", where, minimum=0)
-        weight_sigma = reader.number(entry, "weight_sigma", where, minimum=0, optional=True) or 0.0
-        load_cell = entry.get("load_cell")
-        flyout = entry.get("flyout_angle")
-        for key, value in (("load_cell", load_cell), ("flyout_angle", flyout)):
-            if value is not None and (not isinstance(value, str) or not value.strip()):
-                reader.fail(f"{where}{key}", f"must name a data.csv column, got {value!r}",
-                            f"write {key} = \"<column name>\" or remove the key")
+        diameter = reader.number(entry, "diameter", where, positive=True, plausible=limits.PARACHUTE["diameter"])
+        weight_range = limits.PARACHUTE["weight"]
+        weight = reader.number(entry, "weight", where, minimum=0, plausible=weight_range)
+        weight_sigma = reader.number(entry, "weight_sigma", where, minimum=0, optional=True,
+                                     plausible=weight_range.sigma()) or 0.0
+        load_cell = _column_key(reader, entry, "load_cell", where, pid, owners)
+        flyout = _column_key(reader, entry, "flyout_angle", where, pid, owners)
         stages_raw = entry.get("stage")
         if not isinstance(stages_raw, list) or not stages_raw:
             reader.fail(f"{where}stage", f"parachute {pid!r} has no stages",
@@ -240,9 +283,14 @@ def _parse_parachutes(doc, reader, units):
             swhere = f"{where}stage[{k}]."
             if not isinstance(st, dict):
                 reader.fail(f"{where}stage[{k}]", "is not a table", "write each stage as [[parachute.stage]]")
-            label = reader.string(st, "label", swhere, default=f"stage {k + 1}")
+            reader.keys(st, STAGE_KEYS, f"{where}stage[{k}]")
+            label = reader.text(st, "label", swhere, default=f"stage {k + 1}", what="stage label")
             start = reader.number(st, "start", swhere)
             start_sigma = reader.number(st, "start_sigma", swhere, minimum=0, optional=True) or 0.0
+            if start_sigma > limits.MAX_START_SIGMA:
+                reader.fail(f"{swhere}start_sigma", f"start_sigma = {start_sigma} s, more than "
+                            f"{limits.MAX_START_SIGMA:g} s (bag strip and cutter times are known to a fraction "
+                            "of a second)", "give the 1-sigma of the start time in seconds")
             if stages and start <= stages[-1].start:
                 reader.fail(f"{swhere}start",
                             f"stages out of time order: starts at {start} s, not after the previous stage "
@@ -256,64 +304,46 @@ def _parse_parachutes(doc, reader, units):
     return tuple(parsed)
 
 
-def _read_csv(path):
-    if not path.is_file():
-        raise BundleError(path, "", "file not found",
-                          f"a bundle folder needs {TOML_NAME} and {CSV_NAME} (docs/test-bundle.md)")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError:
-        raise BundleError(path, "", "not UTF-8 text", "save data.csv as UTF-8 CSV") from None
-    header = text.partition("\n")[0].strip()
-    names = [h.strip() for h in header.split(",")]
-    if not header or not all(names):
-        raise BundleError(path, "row 1 (header)", "the header row is missing or has an empty column name",
-                          "start data.csv with a comma-separated header such as time,G,G_sigma,...")
-    dupes = sorted({n for n in names if names.count(n) > 1})
-    if dupes:
-        raise BundleError(path, f"column '{dupes[0]}'", "column name appears more than once",
-                          "give every column a unique name")
-    try:
-        # Blank lines stay rows so that row numbers are file lines; only trailing ones are dropped.
-        frame = pd.read_csv(io.StringIO(text.rstrip("\n")), dtype=str, skipinitialspace=True,
-                            keep_default_na=False, skip_blank_lines=False)
-    except (pd.errors.ParserError, ValueError) as exc:
-        raise BundleError(path, "", f"not a readable CSV table ({exc})",
-                          "make every row have as many comma-separated cells as the header") from None
-    frame.columns = [c.strip() for c in frame.columns]
-    if frame.empty:
-        raise BundleError(path, "", "has a header but no data rows", "add at least two rows of samples")
-    return frame
+def _test_name(doc, reader, folder):
+    """test.toml's name, else the folder's; either must be a safe name (it becomes a folder of a campaign)."""
+    if "name" in doc:
+        return check_name(reader.string(doc, "name", ""), reader.path, "key 'name'", "test name", BundleError)
+    name = folder.resolve().name
+    problem = name_problem(name)
+    if problem:
+        reader.fail("name", f"no name given, and the folder name {shown(name)} cannot be used: {problem}",
+                    "add name = \"...\" to test.toml (1-64 letters, digits, '-', '_', '.', '+' or spaces)")
+    return name
 
 
-def _numeric_column(frame, column, path):
-    raw = frame[column].str.strip()
-    values = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        cell = raw.iloc[i]
-        what = "is empty" if cell == "" else (f"is not a number ({cell!r})" if np.isnan(values[i]) and
-                                              cell.lower() not in ("nan", "-nan", "+nan") else
-                                              f"is {cell!r}, not a finite number")
-        raise BundleError(path, f"row {i + 2}, column '{column}'", f"the cell {what}",
-                          "every cell of a used column must hold a finite number; remove or repair the row")
-    return values
+def _sigma_table(doc, reader, parachutes, units):
+    """The [sigma] table: keys are channels this bundle has, values plausible 1-sigmas in the bundle's units."""
+    table = doc.get("sigma", {})
+    if not isinstance(table, dict):
+        reader.fail("sigma", "is not a table", "write constant sigmas as a [sigma] table")
+    specs = {"G": limits.CHANNELS["G"], "qbar": limits.CHANNELS["qbar"]}
+    for p in parachutes:
+        if p.load_cell:
+            specs[p.load_cell] = limits.CHANNELS["F"]
+        if p.flyout_angle:
+            specs[p.flyout_angle] = limits.CHANNELS["theta"]
+    reader.keys(table, tuple(specs), "sigma")
+    for key, value in table.items():
+        if not _is_number(value) or not math.isfinite(value) or value < 0:
+            reader.fail(f"sigma.{key}", f"must be a finite number ≥ 0, got {shown(value)}", "give a 1-sigma ≥ 0")
+        check_value(value, specs[key].sigma(), units, reader.path, f"sigma.{key}", f"the 1-sigma of {key}")
+    return table
 
 
-def _sigma(frame, column, sigma_table, path):
-    """Per-sample sigma of ``column``: its ``<column>_sigma`` or the constant [sigma] entry."""
-    name = f"{column}_sigma"
-    if name in frame.columns:
-        values = _numeric_column(frame, name, path)
-        if (values < 0).any():
-            i = int(np.flatnonzero(values < 0)[0])
-            raise BundleError(path, f"row {i + 2}, column '{name}'", f"negative sigma {values[i]}",
-                              "a 1-sigma is ≥ 0; correct the value")
-        return values
-    if column in sigma_table:
-        return np.full(len(frame), float(sigma_table[column]))
-    return None
+def _check_stages_in_record(parachutes, t, reader, csv_path):
+    for p in parachutes:
+        for k, st in enumerate(p.stages):
+            if not t[0] <= st.start < t[-1]:
+                side = "before the record starts" if st.start < t[0] else "at or after the record ends"
+                reader.fail(f"parachute '{p.id}'.stage[{k}].start",
+                            f"stage {st.label!r} starts at {st.start:g} s, {side} ({csv_path.name} covers "
+                            f"{t[0]:g} … {t[-1]:g} s)",
+                            "give stage starts in the time base of data.csv, in seconds")
 
 
 def read_bundle(folder) -> FlightTest:
@@ -325,57 +355,54 @@ def read_bundle(folder) -> FlightTest:
     toml_path, csv_path = folder / TOML_NAME, folder / CSV_NAME
     doc = _read_toml(toml_path)
     reader = _TomlReader(toml_path)
+    reader.keys(doc, TOP_KEYS, "")
 
     units_name = reader.string(doc, "units", "")
     if units_name not in UNIT_SYSTEMS:
-        reader.fail("units", f"unknown units {units_name!r}", "use units = \"US\" or units = \"SI\"")
+        reader.fail("units", f"unknown units {shown(units_name)}", "use units = \"US\" or units = \"SI\"")
     units = unit_system(units_name)
-    name = reader.string(doc, "name", "", default=folder.name)
-    phase = reader.string(doc, "phase", "", default="unspecified")
+    reader.units = units
+    name = _test_name(doc, reader, folder)
+    phase = reader.text(doc, "phase", "", default="unspecified")
 
     veh = reader.table(doc, "vehicle", "")
+    reader.keys(veh, VEHICLE_KEYS, "vehicle")
+    weight, cds = limits.VEHICLE["weight"], limits.VEHICLE["cds"]
     vehicle = Vehicle(
-        weight=units.si(reader.number(veh, "weight", "vehicle.", positive=True), "force"),
-        weight_sigma=units.si(reader.number(veh, "weight_sigma", "vehicle.", minimum=0, optional=True) or 0.0,
-                              "force"),
-        cds=units.si(reader.number(veh, "cds", "vehicle.", minimum=0), "area"),
-        cds_sigma=units.si(reader.number(veh, "cds_sigma", "vehicle.", minimum=0, optional=True) or 0.0, "area"),
+        weight=units.si(reader.number(veh, "weight", "vehicle.", positive=True, plausible=weight), "force"),
+        weight_sigma=units.si(reader.number(veh, "weight_sigma", "vehicle.", minimum=0, optional=True,
+                                            plausible=weight.sigma()) or 0.0, "force"),
+        cds=units.si(reader.number(veh, "cds", "vehicle.", minimum=0, plausible=cds), "area"),
+        cds_sigma=units.si(reader.number(veh, "cds_sigma", "vehicle.", minimum=0, optional=True,
+                                         plausible=cds.sigma()) or 0.0, "area"),
     )
     parachutes = _parse_parachutes(doc, reader, units)
+    sigma_table = _sigma_table(doc, reader, parachutes, units)
 
-    sigma_table = doc.get("sigma", {})
-    if not isinstance(sigma_table, dict):
-        reader.fail("sigma", "is not a table", "write constant sigmas as a [sigma] table")
-    for key, value in sigma_table.items():
-        if not _is_number(value) or not math.isfinite(value) or value < 0:
-            reader.fail(f"sigma.{key}", f"must be a finite number ≥ 0, got {value!r}", "give a 1-sigma ≥ 0")
-
-    raw = _read_csv(csv_path)
+    raw = read_csv(csv_path)
     columns = {}
 
-    def need(column, why):
+    def need(column, why, spec):
         if column not in raw.columns:
             raise BundleError(csv_path, f"column '{column}'", f"missing column ({why})",
                               f"add a '{column}' column to data.csv")
-        return _numeric_column(raw, column, csv_path)
+        values = numeric_column(raw, column, csv_path)
+        return check_column(values, spec, units, csv_path, column) if spec else values
 
-    def need_sigma(column, canonical):
-        values = _sigma(raw, column, sigma_table, csv_path)
-        if values is None:
+    def need_sigma(column, canonical, spec, required=True):
+        values = sigma_column(raw, column, sigma_table, csv_path)
+        if values is None and not required:
+            values = np.zeros(len(raw))  # a fly-out angle without a stated sigma: 0
+        elif values is None:
             raise BundleError(csv_path, f"column '{column}_sigma'",
                               f"no 1-sigma for '{column}'",
                               f"add a '{column}_sigma' column, or '{column} = <sigma>' under [sigma] in test.toml")
+        if f"{column}_sigma" in raw.columns:
+            check_column(values, spec.sigma(), units, csv_path, f"{column}_sigma")
         columns[f"{canonical}_sigma"] = values
+        return values
 
-    for col in _REQUIRED:
-        columns[col] = need(col, "required by the bundle format")
-    for col in _OPTIONAL:
-        if col in raw.columns:
-            columns[col] = _numeric_column(raw, col, csv_path)
-    need_sigma("G", "G")
-    need_sigma("qbar", "qbar")
-
-    t = columns["time"]
+    columns["time"] = t = need("time", "required by the bundle format", None)
     if len(t) < 2:
         raise BundleError(csv_path, "column 'time'", "fewer than two samples", "add more rows of data")
     steps = np.diff(t)
@@ -384,30 +411,34 @@ def read_bundle(folder) -> FlightTest:
         raise BundleError(csv_path, f"row {i + 2}, column 'time'",
                           f"time not strictly increasing ({t[i - 1]} then {t[i]})",
                           "sort the rows by time and remove duplicate samples")
-    qbar = columns["qbar"]
-    if (qbar <= 0).any():
-        i = int(np.flatnonzero(qbar <= 0)[0])
-        raise BundleError(csv_path, f"row {i + 2}, column 'qbar'",
-                          f"qbar = {qbar[i]} ≤ 0, where drag areas are computed as load / qbar",
-                          "trim the rows before the vehicle has airspeed, or repair the value")
+    check_record(t, csv_path)
+    _check_stages_in_record(parachutes, t, reader, csv_path)
+    for col in ("G", "qbar", "airspeed", "gamma"):
+        columns[col] = need(col, "required by the bundle format", None)
+        if col == "qbar" and (columns[col] <= 0).any():
+            qbar = columns[col]
+            i = int(np.flatnonzero(qbar <= 0)[0])
+            raise BundleError(csv_path, f"row {i + 2}, column 'qbar'",
+                              f"qbar = {qbar[i]} ≤ 0, where drag areas are computed as load / qbar",
+                              "trim the rows before the vehicle has airspeed, or repair the value")
+        check_column(columns[col], limits.CHANNELS[col], units, csv_path, col)
+    for col in ("density", "altitude"):
+        if col in raw.columns:
+            columns[col] = need(col, "optional", limits.CHANNELS[col])
+    need_sigma("G", "G", limits.CHANNELS["G"])
+    need_sigma("qbar", "qbar", limits.CHANNELS["qbar"])
 
     for p in parachutes:
-        if p.load_cell:
-            if p.load_cell not in raw.columns:
-                raise BundleError(csv_path, f"column '{p.load_cell}'",
-                                  f"parachute {p.id!r} names load_cell '{p.load_cell}' but data.csv has no such column",
-                                  f"add the column or remove load_cell from parachute {p.id!r} in test.toml")
-            columns[p.load_column] = need(p.load_cell, f"load cell of {p.id}")
-            need_sigma(p.load_cell, p.load_column)
-        if p.flyout_angle:
-            if p.flyout_angle not in raw.columns:
-                raise BundleError(csv_path, f"column '{p.flyout_angle}'",
-                                  f"parachute {p.id!r} names flyout_angle '{p.flyout_angle}' but data.csv has no "
-                                  "such column",
-                                  f"add the column or remove flyout_angle from parachute {p.id!r} in test.toml")
-            columns[p.angle_column] = need(p.flyout_angle, f"fly-out angle of {p.id}")
-            sig = _sigma(raw, p.flyout_angle, sigma_table, csv_path)
-            columns[f"{p.angle_column}_sigma"] = sig if sig is not None else np.zeros(len(t))
+        for column, canonical, kind, what in ((p.load_cell, p.load_column, "F", "load_cell"),
+                                              (p.flyout_angle, p.angle_column, "theta", "flyout_angle")):
+            if not column:
+                continue
+            if column not in raw.columns:
+                raise BundleError(csv_path, f"column '{column}'",
+                                  f"parachute {p.id!r} names {what} '{column}' but data.csv has no such column",
+                                  f"add the column or remove {what} from parachute {p.id!r} in test.toml")
+            columns[canonical] = need(column, f"{what} of {p.id}", limits.CHANNELS[kind])
+            need_sigma(column, canonical, limits.CHANNELS[kind], required=kind == "F")
 
     data = pd.DataFrame(columns)
     for col, quantity in _COLUMN_QUANTITY.items():

@@ -1,0 +1,140 @@
+"""Reading a bundle's data.csv within stated limits: size, header, row shape, numeric cells.
+
+The file's size and row count are checked before it is parsed, the header
+before any row, and every row's cell count against the header's (a trailing
+comma on every row is said as such: pandas would otherwise take the first
+column as an index and shift every name by one). Cells stay text until a
+column is used, so a bad cell is reported by its row and column.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pandas as pd
+
+from cpas_bayes.core.errors import BundleError
+from cpas_bayes.core.inputs import shown, text_problem
+from cpas_bayes.data.limits import MAX_COLUMN_NAME, MAX_CSV_BYTES, MAX_CSV_COLUMNS, MAX_CSV_ROWS
+
+_HEADER_FIX = "start data.csv with a comma-separated header such as time,G,G_sigma,..."
+_TRAILING_FIX = "remove the comma at the end of every line (an export option of the spreadsheet or logger)"
+
+
+def _missing(path, other):
+    return BundleError(path, "", "file not found", f"a bundle folder needs {other} and {path.name} "
+                                                   "(docs/test-bundle.md)")
+
+
+def _check_header(path, names):
+    if len(names) > MAX_CSV_COLUMNS:
+        raise BundleError(path, "row 1 (header)", f"{len(names):,} columns, more than {MAX_CSV_COLUMNS:,}",
+                          "keep the channels the bundle format uses (docs/test-bundle.md)")
+    if names == [""]:
+        raise BundleError(path, "row 1 (header)", "the header row is missing or empty", _HEADER_FIX)
+    if len(names) > 1 and names[-1] == "":
+        raise BundleError(path, f"row 1 (header), column {len(names)}",
+                          "the header ends with a comma: an unnamed empty last column", _TRAILING_FIX)
+    for k, name in enumerate(names):
+        if name == "":
+            raise BundleError(path, f"row 1 (header), column {k + 1}", "a column has no name",
+                              "name every column, or remove the empty one")
+        problem = text_problem(name, MAX_COLUMN_NAME)
+        if problem:
+            raise BundleError(path, f"row 1 (header), column {k + 1}", f"column name {shown(name)}: {problem}",
+                              f"use names of at most {MAX_COLUMN_NAME} printable characters")
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise BundleError(path, f"column '{dupes[0]}'", "column name appears more than once",
+                          "give every column a unique name")
+
+
+def _check_row_shapes(path, raw, n_columns):
+    """Refuse rows with more cells than the header (fewer cells are empty cells, reported where used)."""
+    data = np.frombuffer(raw, dtype=np.uint8)
+    newlines = np.flatnonzero(data == 10)
+    ends = np.append(newlines, len(data)) if not raw.endswith(b"\n") else newlines
+    commas = np.searchsorted(np.flatnonzero(data == 44), ends)
+    cells = np.diff(np.concatenate([[0], commas])) + 1              # cells per line, header first
+    longer = np.flatnonzero(cells[1:] > n_columns)
+    if not longer.size:
+        return
+    i = int(longer[0]) + 1                                           # 0-based line index
+    start = int(ends[i - 1]) + 1
+    line = raw[start:int(ends[i])].decode("utf-8", "replace").rstrip("\r")
+    extra = line.split(",")[n_columns:]
+    row = f"row {i + 1}"
+    if all(not c.strip() for c in extra):
+        every = " (every data row does)" if (cells[1:] > n_columns).all() else ""
+        raise BundleError(path, row, f"the row ends with a comma{every}: {len(extra)} empty cell(s) beyond the "
+                          f"header's {n_columns} columns", _TRAILING_FIX)
+    raise BundleError(path, row, f"{int(cells[i])} cells, but the header names {n_columns} columns",
+                      "make every row have as many comma-separated cells as the header")
+
+
+def read_csv(path, toml_name="test.toml"):
+    """data.csv as a frame of cell strings (header names stripped); refuses with file, row and fix."""
+    if not path.is_file():
+        raise _missing(path, toml_name)
+    size = path.stat().st_size
+    if size > MAX_CSV_BYTES:
+        raise BundleError(path, "", f"{size:,} bytes, more than the {MAX_CSV_BYTES:,} a data.csv may have",
+                          "split the record into one bundle per phase, or drop unused columns and samples")
+    raw = path.read_bytes()
+    if raw.startswith(b"\xef\xbb\xbf"):
+        raw = raw[3:]
+    n_lines = raw.count(b"\n") + (0 if raw.endswith(b"\n") or not raw else 1)
+    if n_lines - 1 > MAX_CSV_ROWS:
+        raise BundleError(path, "", f"{n_lines - 1:,} data rows, more than {MAX_CSV_ROWS:,}",
+                          "split the record into one bundle per phase, or resample it")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise BundleError(path, f"byte {exc.start}", "not UTF-8 text", "save data.csv as UTF-8 CSV") from None
+    header = text.partition("\n")[0].strip()
+    names = [h.strip() for h in header.split(",")]
+    _check_header(path, names)
+    _check_row_shapes(path, raw.rstrip(b"\r\n"), len(names))
+    try:
+        # Blank lines stay rows so that row numbers are file lines; only trailing ones are dropped.
+        frame = pd.read_csv(io.StringIO(text.rstrip("\r\n")), dtype=str, skipinitialspace=True, index_col=False,
+                            keep_default_na=False, skip_blank_lines=False)
+    except (pd.errors.ParserError, ValueError) as exc:
+        raise BundleError(path, "", f"not a readable CSV table ({exc})",
+                          "make every row have as many comma-separated cells as the header") from None
+    frame.columns = [c.strip() for c in frame.columns]
+    if frame.empty:
+        raise BundleError(path, "", "has a header but no data rows", "add at least two rows of samples")
+    return frame
+
+
+def numeric_column(frame, column, path):
+    """The finite numbers of one column; refuses the first empty, non-numeric or non-finite cell."""
+    raw = frame[column].str.strip()
+    values = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        cell = raw.iloc[i]
+        what = "is empty" if cell == "" else (f"is not a number ({shown(cell)})" if np.isnan(values[i]) and
+                                              cell.lower() not in ("nan", "-nan", "+nan") else
+                                              f"is {shown(cell)}, not a finite number")
+        raise BundleError(path, f"row {i + 2}, column '{column}'", f"the cell {what}",
+                          "every cell of a used column must hold a finite number; remove or repair the row")
+    return values
+
+
+def sigma_column(frame, column, sigma_table, path):
+    """Per-sample sigma of ``column``: its ``<column>_sigma`` or the constant [sigma] entry, else ``None``."""
+    name = f"{column}_sigma"
+    if name in frame.columns:
+        values = numeric_column(frame, name, path)
+        if (values < 0).any():
+            i = int(np.flatnonzero(values < 0)[0])
+            raise BundleError(path, f"row {i + 2}, column '{name}'", f"negative sigma {values[i]}",
+                              "a 1-sigma is ≥ 0; correct the value")
+        return values
+    if column in sigma_table:
+        return np.full(len(frame), float(sigma_table[column]))
+    return None
