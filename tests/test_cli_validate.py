@@ -152,3 +152,55 @@ def test_as_a_process(example_dir, broken):
     assert "Traceback" not in proc.stdout + proc.stderr
     assert SUMMARY_LINES[DROGUE][1] in proc.stdout.splitlines()
     assert f"refused: {bad / 'data.csv'}, row 7, column 'qbar': " in proc.stderr
+
+
+BAD_PRIORS = {
+    "misspelt nuisance": ('[nuisance]\nload_scal = { family = "uniform", low = 1.0, high = 1.3 }\n',
+                          "key 'nuisance.load_scal'", "did you mean 'load_scale'?"),
+    "kind in capitals": ('kind = "Drogue"\n[first]\nn_p = { family = "normal", mu = 12.0, sigma = 1.0 }\n',
+                         "key 'kind'", "unknown kind 'Drogue'"),
+    "high = inf": ('[first]\nn_p = { family = "lognormal", median = 10.0, sigma_log = 0.5, low = 2.0, high = inf }\n',
+                   "key 'first.n_p.high'", "must be a finite number, got inf"),
+    "Latin-1": ("# équipe\n".encode("latin-1"), "line 1 (byte 2)", "not UTF-8 text"),
+}
+
+
+def _prior_file(tmp_path, case):
+    text = BAD_PRIORS[case][0]
+    path = tmp_path / "my priors.toml"
+    path.write_bytes(text if isinstance(text, bytes) else text.encode("utf-8"))
+    return path
+
+
+@pytest.mark.parametrize("case", BAD_PRIORS)
+def test_validate_checks_a_prior_file(example_dir, capsys, tmp_path, case):
+    path = _prior_file(tmp_path, case)
+    _, place, problem = BAD_PRIORS[case]
+    code, out, err = run(capsys, "validate", "--priors", path, example_dir(DROGUE))
+    assert code == 2
+    assert SUMMARY_LINES[DROGUE][0] in out.splitlines()          # the bundle itself is fine and summarised
+    assert err.startswith(f"refused: {path}, {place}: ") and problem in err and ". Fix: " in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_validate_accepts_a_good_prior_file(example_dir, capsys, tmp_path):
+    path = tmp_path / "mine.toml"
+    path.write_text('kind = "drogue"\n[first]\nn_p = { family = "normal", mu = 12.0, sigma = 1.0 }\n')
+    code, _, err = run(capsys, "validate", "--priors", path, example_dir(DROGUE))
+    assert (code, err) == (0, "")
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose"])
+def test_fit_and_diagnose_refuse_a_bad_prior_file_before_any_work(example_dir, capsys, tmp_path, monkeypatch,
+                                                                  command):
+    from cpas_bayes.data import reduction
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the reduction ran before the prior file was checked")
+
+    monkeypatch.setattr(reduction, "reduce_test", no_work)
+    path, out = _prior_file(tmp_path, "high = inf"), tmp_path / "out"
+    code, _, err = run(capsys, command, example_dir(DROGUE), "--out", out, "--priors", path)
+    assert code == 2
+    assert err.startswith(f"error: {path}, key 'first.n_p.high': must be a finite number, got inf. Fix: ")
+    assert not out.exists()

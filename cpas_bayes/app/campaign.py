@@ -463,10 +463,12 @@ def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=pr
 
 def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     from cpas_bayes.outputs.report import write_report
+    from cpas_bayes.stats.priors import load_test_priors
 
     started = _time.perf_counter()
     paths = find_bundles(folder)
     tests = validate_all(paths)
+    load_test_priors([p.kind for t in tests for p in t.parachutes], config.priors)  # a bad prior file: before any step
     echo(f"{len(tests)} bundles valid in {folder}; running on {executor.describe()}")
     records: list[StepRecord] = []
     prior_key = priors_digest(config)

@@ -17,7 +17,7 @@ from pathlib import Path
 import click
 
 from cpas_bayes import __version__
-from cpas_bayes.data.bundle import read_bundle, summary
+from cpas_bayes.data.bundle import KINDS, read_bundle, summary
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.app.campaign import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
 
@@ -72,15 +72,30 @@ def cli():
     """Parachute flight-test reduction, Bayesian inflation reconstruction and Monte Carlo loads."""
 
 
+def _check_priors(kinds, priors):
+    """Load every prior a test needs (the override file checked whole) before any work starts."""
+    from cpas_bayes.stats.priors import load_test_priors
+
+    load_test_priors(kinds, priors)
+
+
 @cli.command()
 @click.argument("bundles", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print the summaries as JSON.")
-def validate(bundles, as_json):
-    """Check flight-test bundle folders and summarise them.
+@click.option("--priors", type=click.Path(path_type=Path), default=None,
+              help="Also check this prior file (what fit and diagnose take as --priors).")
+def validate(bundles, as_json, priors):
+    """Check flight-test bundle folders (and a prior file) and summarise them.
 
-    Exit status is non-zero if any bundle is refused; every refusal is printed.
+    Exit status is non-zero if any bundle or the prior file is refused; every refusal is printed.
     """
     failures, summaries = 0, []
+    if priors is not None:
+        try:
+            _check_priors(KINDS, priors)
+        except InputError as exc:
+            failures += 1
+            click.secho(f"refused: {exc}", fg="red", err=True)
     for path in bundles:
         try:
             summaries.append(summary(read_bundle(path)))
@@ -197,6 +212,7 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
     test = read_bundle(bundle)
+    _check_priors([p.kind for p in test.parachutes], priors)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}")
     model = prepare_model(test, reduce_test(test), priors=priors, decay=decay)
@@ -374,6 +390,7 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
         raise click.BadParameter(f"unknown extension(s) {', '.join(unknown) or '(none given)'}; use any of "
                                  f"{', '.join(EXTENSIONS)}", param_hint="--candidates")
     test = read_bundle(bundle)
+    _check_priors([p.kind for p in test.parachutes], priors)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
                               sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
     _on_interrupt(f"nothing was written to {out} (a diagnosis writes its files at the end); rerun the command")

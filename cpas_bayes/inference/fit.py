@@ -517,11 +517,11 @@ def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), n
     once and builds every model it needs (baseline, extensions) from that.
     """
     from cpas_bayes.stats.observations import build_observations
-    from cpas_bayes.stats.priors import load_kind_priors, load_nuisance_priors
+    from cpas_bayes.stats.priors import load_test_priors
 
+    kind_priors, nuisance = load_test_priors([p.kind for p in test.parachutes], priors)
     obs = build_observations(test, reduction.frame, native_rate=native_rate)
-    kind_priors = {p.kind: load_kind_priors(p.kind, priors) for p in test.parachutes}
-    return TestModel(test, obs, kind_priors, load_nuisance_priors(priors), decay=decay, extensions=extensions)
+    return TestModel(test, obs, kind_priors, nuisance, decay=decay, extensions=extensions)
 
 
 def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=None, echo=None,

@@ -29,12 +29,18 @@ get normal priors from the bundle's own stated values and sigmas.
 
 A user's ``--priors FILE`` has the same layout; every table it gives replaces
 the default entry of the same name (other entries stay).
+
+Every prior file is read through :func:`cpas_bayes.core.inputs.read_toml` and
+checked whole before any prior is used: only the tables above (``kind``,
+``description``, ``parachute``, the roles, ``nuisance``) and their parameters,
+an unknown name refused with the nearest valid one; ``kind`` one of the bundle
+format's kinds; every number finite, scales > 0, ``low < high``, a lognormal's
+``low ≥ 0``, and bounds that hold a usable share of the distribution.
 """
 
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,13 +48,20 @@ import numba
 import numpy as np
 
 from cpas_bayes.core.errors import InputError
+from cpas_bayes.core.inputs import check_keys, nearest, read_toml, shown
+from cpas_bayes.data.bundle import KINDS
 from cpas_bayes.stats.distributions import TABLE_FORMS, LogNormal, Normal, TruncNormal, Uniform
 
 PRIORS_DIR = Path(__file__).parent.parent / "data" / "priors"
 ROLES = ("first", "reefed", "full_open")
 STAGE_PARAMETERS = ("n_p", "expopen", "ck", "tk", "eps")   # sampled per stage (see the kind files)
 PARACHUTE_PARAMETERS = ("cd_o",)
+NUISANCE_PARAMETERS = ("load_scale", "noise_acc", "noise_lc")   # what the model reads from [nuisance]
 PRIOR_FAMILIES = ("uniform", "normal", "truncnormal", "lognormal")   # those PriorSet evaluates in one pass
+# The tables of a prior file and the parameters each may hold (None: a string, not a table).
+FILE_TABLES = {"kind": None, "description": None, "parachute": PARACHUTE_PARAMETERS,
+               **{role: STAGE_PARAMETERS for role in ROLES}, "nuisance": NUISANCE_PARAMETERS}
+MIN_MASS = 1e-6   # share of a truncated prior's parent distribution its bounds must hold
 
 
 def prior_from_table(table, file, key):
@@ -59,13 +72,17 @@ def prior_from_table(table, file, key):
                          'write e.g. { family = "normal", mu = 1.0, sigma = 0.1 }')
     family = table["family"]
     if family not in PRIOR_FAMILIES:
-        raise InputError(file, f"key '{key}.family'", f"unknown family {family!r}",
-                         f"use one of {', '.join(PRIOR_FAMILIES)}")
+        near = nearest(family, PRIOR_FAMILIES)
+        raise InputError(file, f"key '{key}.family'", f"unknown family {shown(family)}",
+                         (f"did you mean '{near}'? " if near else "") + f"use one of {', '.join(PRIOR_FAMILIES)}")
     cls, required, optional = TABLE_FORMS[family]
-    extra = set(table) - set(required) - set(optional) - {"family"}
+    extra = [name for name in table if name not in required + optional + ("family",)]
     if extra:
-        raise InputError(file, f"key '{key}'", f"unexpected numbers {sorted(extra)} for a {family} prior",
-                         f"give exactly {', '.join(required)}" + (f" (optional {', '.join(optional)})" if optional else ""))
+        near = nearest(extra[0], required + optional)
+        raise InputError(file, f"key '{key}.{shown(extra[0], quote=False)}'",
+                         f"unexpected numbers {[shown(e, 20, quote=False) for e in extra]} for a {family} prior",
+                         (f"did you mean '{near}'? " if near else "") + f"give exactly {', '.join(required)}"
+                         + (f" (optional {', '.join(optional)})" if optional else ""))
     values = {}
     for name in required + optional:
         if name not in table:
@@ -73,8 +90,13 @@ def prior_from_table(table, file, key):
                 raise InputError(file, f"key '{key}.{name}'", f"missing for a {family} prior", f"add {name} = <number>")
             continue
         v = table[name]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v):
-            raise InputError(file, f"key '{key}.{name}'", f"must be a number, got {v!r}", f"write {name} = <number>")
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise InputError(file, f"key '{key}.{name}'", f"must be a number, got {shown(v)}",
+                             f"write {name} = <number>")
+        if not math.isfinite(v):
+            raise InputError(file, f"key '{key}.{name}'", f"must be a finite number, got {v}",
+                             f"give a finite {name}" + ("; leave out high for an unbounded lognormal"
+                                                        if family == "lognormal" and name == "high" else ""))
         values[name] = float(v)
     for scale in ("sigma", "sigma_log", "median"):
         if scale in values and values[scale] <= 0:
@@ -83,18 +105,49 @@ def prior_from_table(table, file, key):
     if "low" in values and "high" in values and not values["low"] < values["high"]:
         raise InputError(file, f"key '{key}'", f"low ({values['low']}) must be below high ({values['high']})",
                          "swap or correct the bounds")
-    return cls(**values)
+    if family == "lognormal" and values.get("low", 0.0) < 0:
+        raise InputError(file, f"key '{key}.low'", f"a lognormal lives on x > 0, got low = {values['low']}",
+                         "give low ≥ 0 or leave it out")
+    prior = cls(**values)
+    with np.errstate(divide="ignore", invalid="ignore"):   # log 0: no mass at all, refused below
+        mass = math.exp(prior.log_mass) if hasattr(prior, "log_mass") else 1.0
+    if not mass >= MIN_MASS:
+        raise InputError(file, f"key '{key}'", f"the bounds [{prior.low:g}, {prior.high:g}] hold {mass:.2g} of the "
+                         f"{family} distribution (less than {MIN_MASS:g}): its centre lies far outside them",
+                         "move mu (or median) inside the bounds, or widen them")
+    return prior
 
 
 def _load_toml(path):
+    """A prior file's document, checked whole (tables, parameters, every prior) before any use."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "", "prior file not found", "pass an existing TOML file to --priors")
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(path, "", f"not valid TOML ({exc})", "correct the TOML syntax") from None
+    doc = read_toml(path, InputError)
+    check_keys(doc, tuple(FILE_TABLES), path, "", InputError, what="table")
+    for name, parameters in FILE_TABLES.items():
+        if name not in doc:
+            continue
+        value = doc[name]
+        if parameters is None:
+            if not isinstance(value, str):
+                raise InputError(path, f"key '{name}'", f"must be a string, got {shown(value)}",
+                                 f"write {name} = \"...\"")
+            continue
+        if not isinstance(value, dict):
+            raise InputError(path, f"key '{name}'", f"must be a table, got {shown(value)}",
+                             f"write [{name}] with one prior per line, e.g. {parameters[0]} = {{ family = ... }}")
+        what = ("stage parameter" if name in ROLES else f"{name} parameter")
+        check_keys(value, parameters, path, name, InputError, what=what)
+        for parameter, table in value.items():
+            prior_from_table(table, path, f"{name}.{parameter}")
+    kind = doc.get("kind")
+    if kind is not None and kind not in KINDS:
+        near = nearest(kind, KINDS)
+        raise InputError(path, "key 'kind'", f"unknown kind {shown(kind)}",
+                         (f"did you mean '{near}'? " if near else "") + f"use one of {', '.join(KINDS)} "
+                         "(or leave kind out to apply the file to every kind)")
+    return doc
 
 
 @dataclass(frozen=True)
@@ -124,21 +177,11 @@ class NuisancePriors:
 def _merge_kind(doc, file, base=None):
     stage = {r: dict(base.stage[r]) if base else {} for r in ROLES}
     chute = dict(base.parachute) if base else {}
-    for role in ROLES:
+    for role in ROLES:   # the document is checked whole by _load_toml
         for name, table in doc.get(role, {}).items():
-            if name not in STAGE_PARAMETERS:
-                raise InputError(file, f"key '{role}.{name}'", "unknown stage parameter",
-                                 f"use one of {', '.join(STAGE_PARAMETERS)}")
             stage[role][name] = prior_from_table(table, file, f"{role}.{name}")
     for name, table in doc.get("parachute", {}).items():
-        if name not in PARACHUTE_PARAMETERS:
-            raise InputError(file, f"key 'parachute.{name}'", "unknown parachute parameter",
-                             f"use one of {', '.join(PARACHUTE_PARAMETERS)}")
         chute[name] = prior_from_table(table, file, f"parachute.{name}")
-    unknown = set(doc) - set(ROLES) - {"parachute", "kind", "description", "nuisance"}
-    if unknown:
-        raise InputError(file, f"key '{sorted(unknown)[0]}'", "unknown table in a prior file",
-                         f"use kind, description, parachute, nuisance or a role ({', '.join(ROLES)})")
     return stage, chute
 
 
@@ -164,6 +207,12 @@ def load_kind_priors(kind, override=None):
         r, p = missing[0]
         raise InputError(sources[-1], f"key '{r}.{p}'", "no prior for this parameter", f"add [{r}] {p} = {{...}}")
     return KindPriors(kind, stage, chute, tuple(sources))
+
+
+def load_test_priors(kinds, override=None):
+    """Every prior a test of parachute ``kinds`` needs, the override file checked whole: what ``fit``,
+    ``diagnose`` and ``validate --priors`` load before any work. Returns ({kind: KindPriors}, NuisancePriors)."""
+    return {kind: load_kind_priors(kind, override) for kind in dict.fromkeys(kinds)}, load_nuisance_priors(override)
 
 
 def load_nuisance_priors(override=None):
