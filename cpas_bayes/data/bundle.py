@@ -9,8 +9,12 @@ and ``data.csv`` (time histories). :func:`read_bundle` returns a
 F_<id>_sigma``, with a fly-out angle ``theta_<id>, theta_<id>_sigma`` (deg).
 
 Every refusal is a :class:`~cpas_bayes.core.errors.BundleError` naming the file,
-the row or key, and the fix. :func:`write_bundle` writes the format back in the
-test's own units, atomically.
+the row or key, and the fix, raised while reading, before any work: unknown
+keys (with the nearest valid one), unsafe names, implausible values
+(:mod:`cpas_bayes.data.limits`), stage starts outside the record, one column
+named by two parachutes, and a data.csv beyond its size limits or of the wrong
+shape (:mod:`cpas_bayes.data.bundle_csv`). :func:`write_bundle` writes the
+format back in the test's own units, atomically.
 """
 
 from __future__ import annotations
