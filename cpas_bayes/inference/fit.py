@@ -533,7 +533,9 @@ def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=
     """
     from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, build_datatree, build_summary, convergence, save_datatree, write_summary
 
-    out = Path(out) if out else None
+    from cpas_bayes.core.ownership import claim_folder
+
+    out = claim_folder(out) if out else None
     if checkpoint_dir is None and out is not None:
         checkpoint_dir = out / "checkpoint"
     sampling = sample_posterior(model, options, checkpoint_dir=checkpoint_dir, echo=echo, guesses=guesses,
