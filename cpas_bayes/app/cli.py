@@ -4,12 +4,19 @@ Each command is a thin face over a library function: parse options, call,
 print where the outputs are. Bad input ends with one message naming the file,
 the place and the fix (exit status 2); an unexpected fault ends with a short
 message (exit status 1) and the traceback only when ``CPAS_BAYES_DEBUG=1``.
+
+Every ``--out`` is checked before any work (:func:`cpas_bayes.core.ownership.check_output`:
+new, empty, or written by cpas-bayes); an output that cannot be written (no
+permission, disk full, a name too long) ends like bad input, naming the path.
+SIGTERM is handled like Ctrl-C: temporary files removed, workers stopped,
+exit status 130.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 import traceback
 from pathlib import Path
@@ -455,13 +462,35 @@ def _select_backend():
         matplotlib.use("Agg")
 
 
+def _sigterm_as_interrupt(signum, frame):
+    raise KeyboardInterrupt  # SIGTERM (kill, a batch system's stop) ends a command as Ctrl-C does
+
+
 def main(argv=None):
     """Entry point: run the CLI, turning bad input into one clear message."""
     _select_backend()
+    _INTERRUPTED[0] = _NOTHING_HALF_WRITTEN
+    try:
+        previous = signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    except ValueError:  # not the main thread: signals stay as they are
+        previous = None
+    try:
+        return _run(argv)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(argv):
     try:
         cli.main(args=argv, prog_name="cpas-bayes", standalone_mode=False)
     except InputError as exc:
         click.secho(f"error: {exc}", fg="red", err=True)
+        return 2
+    except OSError as exc:  # an output (or input) the system refused: the path and the fix, not a traceback
+        if os.environ.get("CPAS_BAYES_DEBUG") == "1":
+            traceback.print_exc()
+        click.secho(f"error: {output_error(exc, exc.filename or '', verb='used')}", fg="red", err=True)
         return 2
     except click.exceptions.Abort:
         click.echo(_INTERRUPTED[0], err=True)
