@@ -135,7 +135,8 @@ def test_canonical_column_names_whatever_the_bundle_calls_them(example_dir, bund
 def test_round_trip_in_bundle_units(example_dir, same_test, tmp_path, name):
     original = read_bundle(example_dir(name))
     out = write_bundle(original, tmp_path / "out", extra_files={"notes.txt": "written by a test\n"})
-    assert sorted(p.name for p in out.iterdir()) == ["data.csv", "notes.txt", "test.toml"]
+    # the files, and the marker that says cpas-bayes wrote them (core.ownership)
+    assert sorted(p.name for p in out.iterdir()) == [".cpas-bayes", "data.csv", "notes.txt", "test.toml"]
     assert (out / "notes.txt").read_text(encoding="utf-8") == "written by a test\n"
     assert raw_toml(out)["units"] == "US"
     same_test(read_bundle(out), original, rtol=1e-9)

@@ -20,6 +20,10 @@ whose hash is unchanged, so adding one test costs one fit (plus the pooled
 steps, which depend on all tests). Fit checkpoints live in
 ``OUT/.checkpoints`` so an interrupted fit resumes.
 
+OUT follows the output-folder rule of :mod:`cpas_bayes.core.ownership` (new,
+empty, or written by cpas-bayes), and every path built from a name in the
+data (test names, parachute kinds) is checked to stay inside it.
+
 Layout of OUT::
 
     campaign.json                  manifest: tests, steps, hashes, timings
@@ -40,6 +44,7 @@ import hashlib
 import json
 import time as _time
 import tomllib
+import unicodedata
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -51,6 +56,8 @@ from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.stats.model_terms import EXTENSIONS
 from cpas_bayes.core.files import atomic_directory, write_json
+from cpas_bayes.core.inputs import inside
+from cpas_bayes.core.ownership import check_output, claim_folder
 from cpas_bayes.inference.fit import SamplerOptions
 
 MEASUREMENT_CAUSES = ("friction_drift", "sensor_lag")
@@ -260,12 +267,19 @@ def validate_all(paths):
         raise InputError(Path(paths[0]).parent, f"{len(problems)} of {len(paths)} bundles",
                          "invalid:\n  " + "\n  ".join(problems),
                          "fix or remove them (cpas-bayes validate BUNDLE shows one at a time)")
-    names = [t.name for t in tests]
-    dupes = sorted({n for n in names if names.count(n) > 1})
+    # compared as a case-insensitive file system would: 'T1' and 't1' would share one folder there
+    keys = [unicodedata.normalize("NFC", t.name).casefold() for t in tests]
+    dupes = sorted({t.name for t, k in zip(tests, keys) if keys.count(k) > 1})
     if dupes:
-        raise InputError(Path(paths[0]).parent, f"test names {dupes}", "used by more than one bundle",
+        raise InputError(Path(paths[0]).parent, f"test names {dupes}", "used by more than one bundle (names that "
+                         "differ only in upper/lower case count as the same: they would share one output folder)",
                          "give every bundle its own [test] name")
     return tests
+
+
+def test_folder(out, name, *parts):
+    """``OUT/tests/<name>/<parts>``, refused if the test's name would lead outside ``OUT/tests``."""
+    return inside(Path(out) / "tests", name).joinpath(*parts)
 
 
 def configuration_of(test) -> str:
@@ -387,12 +401,12 @@ def _test_task(job, report=None, executor=None):
     log = []
     echo = report if report is not None else log.append
     records = []
-    base = out / "tests" / test.name
+    base = test_folder(out, test.name)
     reduced = functools.cache(lambda: reduce_test(test))  # once per run, only if a step is not up to date
     echo(f"{test.name}:")
     run_step(base / "reduction", bundle_key, _reduce_work(reduced), records, f"{test.name} reduction", echo)
     run_step(base / "fit", fit_key,
-             _fit_work(test, reduced, config, out / ".checkpoints" / test.name, echo, executor),
+             _fit_work(test, reduced, config, inside(out / ".checkpoints", test.name), echo, executor),
              records, f"{test.name} fit", echo)
     if diag_key is not None:
         run_step(base / "diagnosis", diag_key, _diagnose_work(test, reduced, config, base / "fit", echo, executor),
@@ -434,11 +448,11 @@ class CampaignResult:
 
 def pooled_fit_folder(out, test_name):
     """The fit a test contributes to the memo: its extended fit when a measurement cause was named."""
-    diag = Path(out) / "tests" / test_name / "diagnosis"
+    diag = test_folder(out, test_name, "diagnosis")
     doc = diag / "diagnosis.json"
     if doc.is_file() and json.loads(doc.read_text())["cause"] in MEASUREMENT_CAUSES and (diag / "extended").is_dir():
         return diag / "extended"
-    return Path(out) / "tests" / test_name / "fit"
+    return test_folder(out, test_name, "fit")
 
 
 def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=print,
@@ -466,9 +480,17 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     from cpas_bayes.stats.priors import load_test_priors
 
     started = _time.perf_counter()
+    check_output(out)
     paths = find_bundles(folder)
     tests = validate_all(paths)
     load_test_priors([p.kind for t in tests for p in t.parachutes], config.priors)  # a bad prior file: before any step
+    configs = {}
+    for path, test in zip(paths, tests):
+        test_folder(out, test.name)  # every path from a name checked before anything runs
+        name = configuration_of(test)
+        inside(out / "montecarlo", name)
+        configs.setdefault(name, (path, test))
+    claim_folder(out)
     echo(f"{len(tests)} bundles valid in {folder}; running on {executor.describe()}")
     records: list[StepRecord] = []
     prior_key = priors_digest(config)
@@ -490,7 +512,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     _collect(results, records, echo)
     causes = {}
     for test in tests:
-        doc = out / "tests" / test.name / "diagnosis" / "diagnosis.json"
+        doc = test_folder(out, test.name, "diagnosis", "diagnosis.json")
         causes[test.name] = json.loads(doc.read_text())["cause"] if doc.is_file() else None
 
     pool_sources = {t.name: pooled_fit_folder(out, t.name) for t in tests}
@@ -506,19 +528,16 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     echo("memo:")
     run_step(out / "memo", pool_key, pool_work, records, "pool", echo)
 
-    configs = {}
-    for path, test in zip(paths, tests):
-        configs.setdefault(configuration_of(test), (path, test))
     echo("Monte Carlo and load comparisons:")
     jobs = []
     for name, (path, like) in configs.items():
         key = _digest(pool_key, folder_digest(path), config.montecarlo_runs, config.seed)
-        jobs.append(("montecarlo", out / "montecarlo" / name, key,
+        jobs.append(("montecarlo", inside(out / "montecarlo", name), key,
                      f"Monte Carlo {name} ({config.montecarlo_runs} runs)", (like, out / "memo", config)))
     for test in tests:
         key = _digest(pool_key, fit_keys[test.name], config.compare_runs, config.seed)
-        jobs.append(("compare", out / "tests" / test.name / "compare", key, f"{test.name} load comparison",
-                     (test, out / "memo", out / "tests" / test.name / "fit", config)))
+        jobs.append(("compare", test_folder(out, test.name, "compare"), key, f"{test.name} load comparison",
+                     (test, out / "memo", test_folder(out, test.name, "fit"), config)))
     _collect(executor.map(_pooled_step_task, jobs, desc="steps", on_report=echo), records, echo)
     seconds = _time.perf_counter() - started
     manifest = {"campaign": config.name or Path(folder).name, "folder": str(folder), "version": __version__,

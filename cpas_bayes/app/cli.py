@@ -4,12 +4,19 @@ Each command is a thin face over a library function: parse options, call,
 print where the outputs are. Bad input ends with one message naming the file,
 the place and the fix (exit status 2); an unexpected fault ends with a short
 message (exit status 1) and the traceback only when ``CPAS_BAYES_DEBUG=1``.
+
+Every ``--out`` is checked before any work (:func:`cpas_bayes.core.ownership.check_output`:
+new, empty, or written by cpas-bayes); an output that cannot be written (no
+permission, disk full, a name too long) ends like bad input, naming the path.
+SIGTERM is handled like Ctrl-C: temporary files removed, workers stopped,
+exit status 130.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 import traceback
 from pathlib import Path
@@ -19,13 +26,15 @@ import click
 from cpas_bayes import __version__
 from cpas_bayes.data.bundle import KINDS, read_bundle, summary
 from cpas_bayes.core.errors import InputError
+from cpas_bayes.core.ownership import check_output, output_error
 from cpas_bayes.app.campaign import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
 
 # What Ctrl-C leaves behind, said by the command that is running (see main()).
-_INTERRUPTED = ["interrupted; nothing half-written was left (every output is written to a temporary file and "
-                "renamed)"]
+_NOTHING_HALF_WRITTEN = ("interrupted; nothing half-written was left (every output is written to a temporary file "
+                         "and renamed)")
+_INTERRUPTED = [_NOTHING_HALF_WRITTEN]
 
 
 def _on_interrupt(message):
@@ -118,6 +127,7 @@ def demo(out):
     """Run the main job on the bundled data and write its report."""
     from cpas_bayes.app.demo import run_demo
 
+    check_output(out)
     index = run_demo(out, echo=click.echo)
     click.echo(f"report: {index}")
 
@@ -135,6 +145,7 @@ def reduce_command(bundle, out, scale, windows):
     from cpas_bayes.data.reduction import parse_window, reduce_test
     from cpas_bayes.outputs.reduction import write_reduction
 
+    check_output(out)
     test = read_bundle(bundle)
     chosen = [parse_window(w, test.label) for w in windows] or None
     red = reduce_test(test, scale=scale, windows=chosen)
@@ -183,6 +194,7 @@ def synth_command(scenario, effect, magnitude, seed, out):
 
     if magnitude is not None and effect == "none":
         raise click.BadParameter("a magnitude needs an effect other than 'none'", param_hint="--magnitude")
+    check_output(out)
     try:
         folder = write_synthetic(scenario, effect, seed, out, magnitude=magnitude)
     except ValueError as exc:  # an impossible effect size, said plainly
@@ -211,6 +223,7 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
+    check_output(out)  # an earlier fit's folder is the package's: the fit resumes from its checkpoints
     test = read_bundle(bundle)
     _check_priors([p.kind for p in test.parachutes], priors)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
@@ -256,6 +269,7 @@ def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, comp
     from cpas_bayes.loads.montecarlo import run_monte_carlo
     from cpas_bayes.outputs.montecarlo import write_fill_time_comparison, write_monte_carlo
 
+    check_output(out)
     memo = load_memo(memo_path)
     test = read_bundle(like)
     rng = np.random.default_rng(seed)
@@ -308,6 +322,7 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
 
     if memo_path is None and fit_path is None:
         raise click.UsageError("give --memo, --fit or both")
+    check_output(out)
     test = read_bundle(bundle)
     memo = load_memo(memo_path) if memo_path is not None else None
     fit = load_fit(fit_path) if fit_path is not None else None
@@ -343,6 +358,7 @@ def pool_command(fitdirs, out, seed):
     from cpas_bayes.population.pool import pool_folders
     from cpas_bayes.population.reweighting import PoolWarning
 
+    check_output(out)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoolWarning)
         result = pool_folders(fitdirs, seed=seed)
@@ -384,6 +400,7 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
     from cpas_bayes.outputs.diagnosis import write_diagnosis
     from cpas_bayes.stats.model_terms import EXTENSIONS
 
+    check_output(out)
     names = tuple(c.strip() for c in candidates.split(",") if c.strip())
     unknown = [n for n in names if n not in EXTENSIONS]
     if unknown or not names:
@@ -428,6 +445,7 @@ def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode
 
     from cpas_bayes.app.campaign import CampaignConfig, load_config, run_campaign
 
+    check_output(out)
     config = load_config(config_path) if config_path else CampaignConfig()
     if workers is not None:
         config = replace(config, workers=workers)
@@ -461,13 +479,35 @@ def _select_backend():
         matplotlib.use("Agg")
 
 
+def _sigterm_as_interrupt(signum, frame):
+    raise KeyboardInterrupt  # SIGTERM (kill, a batch system's stop) ends a command as Ctrl-C does
+
+
 def main(argv=None):
     """Entry point: run the CLI, turning bad input into one clear message."""
     _select_backend()
+    _INTERRUPTED[0] = _NOTHING_HALF_WRITTEN
+    try:
+        previous = signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    except ValueError:  # not the main thread: signals stay as they are
+        previous = None
+    try:
+        return _run(argv)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(argv):
     try:
         cli.main(args=argv, prog_name="cpas-bayes", standalone_mode=False)
     except InputError as exc:
         click.secho(f"error: {exc}", fg="red", err=True)
+        return 2
+    except OSError as exc:  # an output (or input) the system refused: the path and the fix, not a traceback
+        if os.environ.get("CPAS_BAYES_DEBUG") == "1":
+            traceback.print_exc()
+        click.secho(f"error: {output_error(exc, exc.filename or '', verb='used')}", fg="red", err=True)
         return 2
     except click.exceptions.Abort:
         click.echo(_INTERRUPTED[0], err=True)

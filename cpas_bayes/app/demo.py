@@ -16,6 +16,8 @@ import json
 from pathlib import Path
 
 from cpas_bayes.app.campaign import CampaignConfig, run_campaign
+from cpas_bayes.core.inputs import inside
+from cpas_bayes.core.ownership import check_output, claim_folder
 
 # (bundle name, scenario, hidden effect, seed, magnitude)
 DEMO_TESTS = (
@@ -42,7 +44,7 @@ def write_demo_bundles(folder, echo=print):
 
     folder = Path(folder)
     for name, scenario, effect, seed, magnitude in DEMO_TESTS:
-        target = folder / name
+        target = inside(folder, name)
         if (target / "test.toml").is_file():
             continue
         test, truth = synthesize(scenario, effect, seed, magnitude, name=name)
@@ -53,7 +55,7 @@ def write_demo_bundles(folder, echo=print):
 
 def run_demo(out, echo=print):
     """Generate the demo bundles (first run) and run the campaign into ``out``; return the report path."""
-    out = Path(out)
+    out = claim_folder(check_output(out))  # new, empty or an earlier demo's: never anyone else's files
     bundles = write_demo_bundles(out / "bundles", echo)
     result = run_campaign(bundles, out, DEMO_CONFIG, echo=echo)
     return result.report

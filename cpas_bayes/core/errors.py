@@ -18,6 +18,10 @@ class InputError(Exception):
         self.fix = fix
         super().__init__(self._message())
 
+    def __reduce__(self):
+        # picklable with its four fields, so that a refusal raised in a worker process reaches the user whole
+        return self.__class__, (self.file, self.where, self.problem, self.fix)
+
     def _message(self):
         place = f", {self.where}" if self.where else ""
         return f"{self.file}{place}: {self.problem}. Fix: {self.fix}"

@@ -22,6 +22,13 @@ on_report=f)`` calls ``f(*message)`` in the calling process for each one.
 Ctrl-C stops the workers at once and raises ``KeyboardInterrupt`` in the
 caller; every task writes its outputs atomically and checkpoints as it goes,
 so rerunning the same command resumes.
+
+Workers die with the process that started them, however it ends (even
+SIGKILL, which runs no clean-up): each worker watches that process (a pidfd
+on Linux, a poll elsewhere) and asks the kernel for SIGTERM when its own
+parent, the fork server, goes (``PR_SET_PDEATHSIG``). On SIGTERM a worker
+removes the temporary files of its writes under way and exits at once, so no
+orphan goes on writing checkpoints beside a rerun.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ import logging
 import os
 import signal
 import sys
+import time
 
 _BLAS_LIMIT = None  # keeps the threadpoolctl limiter alive in a worker
 _IN_WORKER = False  # set in worker processes: tasks started from a task run in it, one after another
@@ -49,13 +57,84 @@ def limit_blas_threads():
 
 
 _REPORTS = None  # in a pool worker: the queue that carries tasks' messages to the parent
+_REMOVE_TEMPORARIES = None  # in a pool worker: core.files.remove_temporaries, loaded before any signal comes
 
 
-def _process_worker_init(reports):
-    global _REPORTS
-    _REPORTS = reports
+def _end_worker(code):
+    """End this worker now: its temporary files removed, no clean-up of anything else (no orphan writes).
+
+    A second signal may arrive while this runs (SIGTERM from the parent and the
+    parent-death signal at once); whatever it raises, the process ends.
+    """
+    try:
+        if _REMOVE_TEMPORARIES is not None:
+            _REMOVE_TEMPORARIES()
+    finally:
+        os._exit(code)
+
+
+def _on_sigterm(signum, frame):
+    _end_worker(128 + signum)
+
+
+def _set_parent_death_signal(sig):
+    """Linux: the kernel sends ``sig`` to this process when its parent ends. Returns whether it is set."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        PR_SET_PDEATHSIG = 1
+        return libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _watch_process(pid, interval=0.5):
+    """A daemon thread that ends this worker as soon as process ``pid`` (the one that started the pool) ends."""
+    import threading
+
+    try:
+        handle = os.pidfd_open(pid)  # Linux ≥ 5.3: readable once the process has ended; no pid reuse race
+    except ProcessLookupError:
+        _end_worker(1)
+    except (AttributeError, OSError):
+        handle = None
+
+    def alive():
+        try:
+            os.kill(pid, 0)
+            return True
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+
+    def watch():
+        if handle is not None:
+            import select
+
+            select.select([handle], [], [])
+        else:
+            while alive():
+                time.sleep(interval)
+        _end_worker(1)
+
+    threading.Thread(target=watch, name="cpas-bayes-parent-watch", daemon=True).start()
+
+
+def _process_worker_init(reports, owner_pid=None):
+    global _REPORTS, _REMOVE_TEMPORARIES
+    from cpas_bayes.core.files import remove_temporaries
+
+    _REPORTS, _REMOVE_TEMPORARIES = reports, remove_temporaries
     # The parent handles Ctrl-C and terminates the pool; workers must not die mid-write on it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    _set_parent_death_signal(signal.SIGTERM)  # the fork server (or, with spawn, the owner) ending
+    if owner_pid is not None:
+        _watch_process(owner_pid)  # the owner ending (the fork server outlives it while workers run)
     limit_blas_threads()
 
 
@@ -153,7 +232,7 @@ class ProcessExecutor(Executor):
             self._not_ours = set(mp.active_children())
             self._reports = self._ctx.Queue()
             self._pool = ProcessPoolExecutor(self.workers, mp_context=self._ctx, initializer=_process_worker_init,
-                                             initargs=(self._reports,))
+                                             initargs=(self._reports, os.getpid()))
         return self._pool
 
     def _drain(self, on_report, open_tasks, timeout=0.0):

@@ -405,20 +405,57 @@ class _EnsembleStore:
         return steps, backend.get_chain(), backend.get_log_prob(), acceptance
 
 
-def run_ensemble(model, init, seed, options: SamplerOptions, checkpoint=None, label="", report=None):
-    """Run one ensemble to convergence (or ``max_steps``); resumable from ``checkpoint``."""
-    store = _EnsembleStore(model, init, seed, options, checkpoint)
-    tau_prev = None
-    while True:
-        steps, chain, log_prob, acceptance = store.advance()
-        tau = _autocorr(chain, options.store_every)
-        settled = tau_prev is not None and np.all(np.abs(tau - tau_prev) < options.tau_rtol * tau)
-        converged = bool(steps > options.tau_factor * np.max(tau) and settled)
-        if report is not None:
-            report(label, steps, float(np.max(tau)), converged)
-        if converged or steps >= options.max_steps:
-            break
+def _check(chain, steps, tau_prev, options):
+    """The convergence check after a chunk: (τ, converged, stop)."""
+    tau = _autocorr(chain, options.store_every)
+    settled = tau_prev is not None and np.all(np.abs(tau - tau_prev) < options.tau_rtol * tau)
+    converged = bool(steps > options.tau_factor * np.max(tau) and settled)
+    return tau, converged, converged or steps >= options.max_steps
+
+
+def _replay(store, options):
+    """The checks an uninterrupted run made at the chunk ends a checkpoint holds: (last τ, stopped state or None).
+
+    A resumed ensemble continues with the same τ history; one whose checkpoint reached its end adds no chunk.
+    """
+    backend = store.sampler.backend
+    per_chunk, tau_prev = max(1, options.check_every // options.store_every), None
+    if backend.iteration == 0:
+        return None, None
+    chain, log_prob = backend.get_chain(), backend.get_log_prob()
+    acceptance = float(np.mean(backend.accepted) / max(backend.iteration, 1))
+    for end in range(per_chunk, backend.iteration + 1, per_chunk):
+        steps = end * options.store_every
+        tau, converged, stop = _check(chain[:end], steps, tau_prev, options)
+        if stop:
+            return tau, (steps, chain[:end], log_prob[:end], acceptance, tau, converged)
         tau_prev = tau
+    return tau_prev, None
+
+
+def run_ensemble(model, init, seed, options: SamplerOptions, checkpoint=None, label="", report=None):
+    """Run one ensemble to convergence (or ``max_steps``); resumable from ``checkpoint``.
+
+    While it runs, the ensemble holds the checkpoint's lock: a second process
+    (a rerun while a killed run's worker still ends) waits or is refused
+    instead of writing beside it.
+    """
+    from cpas_bayes.core.files import exclusive_writer
+
+    with exclusive_writer(checkpoint or None):
+        store = _EnsembleStore(model, init, seed, options, checkpoint)
+        tau_prev, stopped = _replay(store, options)
+        while stopped is None:
+            steps, chain, log_prob, acceptance = store.advance()
+            tau, converged, stop = _check(chain, steps, tau_prev, options)
+            if stop:
+                stopped = (steps, chain, log_prob, acceptance, tau, converged)
+            elif report is not None:
+                report(label, steps, float(np.max(tau)), converged)
+            tau_prev = tau
+    steps, chain, log_prob, acceptance, tau, converged = stopped
+    if report is not None:
+        report(label, steps, float(np.max(tau)), converged)
     burn = int(np.ceil(2 * np.max(tau) / options.store_every))
     thin = max(1, int(0.5 * np.min(tau) / options.store_every))
     kept = chain[burn::thin]
@@ -533,7 +570,9 @@ def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=
     """
     from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, build_datatree, build_summary, convergence, save_datatree, write_summary
 
-    out = Path(out) if out else None
+    from cpas_bayes.core.ownership import claim_folder
+
+    out = claim_folder(out) if out else None
     if checkpoint_dir is None and out is not None:
         checkpoint_dir = out / "checkpoint"
     sampling = sample_posterior(model, options, checkpoint_dir=checkpoint_dir, echo=echo, guesses=guesses,

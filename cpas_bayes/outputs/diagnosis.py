@@ -14,12 +14,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import matplotlib.pyplot as plt
 import numpy as np
 
 from cpas_bayes.core.files import jsonable, write_csv, write_json, write_text
+from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.inference.candidate_fits import extension_parameters
 from cpas_bayes.inference.diagnose import Diagnosis
 from cpas_bayes.outputs.figures import save_figure
@@ -159,8 +158,7 @@ def _change_window(time, base_mean, ext_mean, data, half_width):
 
 def write_diagnosis(d: Diagnosis, out):
     """Write ``diagnosis.json``, ``diagnosis.md``, the tables and the figures into ``out``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_folder(out)
     units = d.baseline.fit.model.test.units
 
     def save(fig, name):

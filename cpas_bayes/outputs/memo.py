@@ -11,11 +11,10 @@ warnings and provenance) and the forest and pair figures
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from cpas_bayes.core.files import write_text
+from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.outputs.plots.pool import write_pool_figures
 from cpas_bayes.population.families import FAMILY_NAMES
 from cpas_bayes.population.pool import PoolResult
@@ -77,7 +76,7 @@ def memo_markdown(result: PoolResult, provenance=None) -> str:
 
 def write_pool(result: PoolResult, out, provenance=None):
     """Write memo.toml, memo_draws.csv, memo.md and the forest plots into ``out``; return the paths."""
-    out = Path(out)
+    out = claim_folder(out)
     memo = result.to_memo(provenance)
     memo_path = memo.write(out)
     md = out / "memo.md"

@@ -17,11 +17,10 @@ Every file is written atomically; non-finite numbers become JSON null.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import matplotlib.pyplot as plt
 
 from cpas_bayes.core.files import jsonable, write_csv, write_json
+from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.loads.fill_time import FillTimeComparison
 from cpas_bayes.loads.montecarlo import MonteCarloResult
 from cpas_bayes.outputs.figures import save_figure, write_json_and_figure
@@ -36,7 +35,7 @@ def write_monte_carlo(result: MonteCarloResult, out, memo: Memo | None = None, e
     ``extra`` entries are added to summary.json (seed, command line).
     Everything is built before anything is written.
     """
-    out = Path(out)
+    out = claim_folder(out)
     table = result.frame()
     summary = result.summary()
     summary.update(extra or {})
@@ -56,7 +55,7 @@ def write_monte_carlo(result: MonteCarloResult, out, memo: Memo | None = None, e
 
 def write_fill_time_comparison(comparison: FillTimeComparison, out, extra=None):
     """Write np_vs_n.json and fill_time_np_vs_n.png into ``out`` (atomically); return their paths."""
-    out = Path(out)
+    out = claim_folder(out)
     doc = comparison.to_json()
     doc.update(extra or {})
     paths = {"json": out / "np_vs_n.json", "png": out / "fill_time_np_vs_n.png"}

@@ -12,6 +12,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 
 from cpas_bayes.core.files import write_csv, write_json
+from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.data.reduction import Reduction
 from cpas_bayes.outputs.figures import save_figure
 from cpas_bayes.outputs.plots.reduction import plot_reduction
@@ -20,6 +21,7 @@ from cpas_bayes.outputs.plots.reduction import plot_reduction
 def write_reduction(reduction: Reduction, out):
     """Write reduced.csv, reduction.json and reduction.png into folder ``out``; return their paths."""
     out = Path(out)
+    claim_folder(out)
     # Build everything before writing anything, so a failure leaves no partial output.
     table = reduction.to_bundle_units(reduction.csv_columns)
     summary = reduction.to_json()

@@ -14,6 +14,7 @@ import re
 from pathlib import Path
 
 from cpas_bayes.core.files import write_text
+from cpas_bayes.core.inputs import inside
 
 FORCE = {"US": "lbf", "SI": "N"}
 
@@ -46,9 +47,9 @@ def _summary_section(out, manifest):
              "## Diagnoses", "",
              "| test | configuration | cause | in words |", "|---|---|---|---|"]
     for name in manifest["tests"]:
-        chutes = (_read(out / "tests" / name / "fit" / "summary.json") or {}).get("parachutes", {})
+        chutes = (_read(inside(out / "tests", name) / "fit" / "summary.json") or {}).get("parachutes", {})
         kinds = " + ".join(sorted({p["kind"] for p in chutes.values()}))
-        d = _read(out / "tests" / name / "diagnosis" / "diagnosis.json")
+        d = _read(inside(out / "tests", name) / "diagnosis" / "diagnosis.json")
         cause = causes.get(name)
         words = "diagnosis off" if d is None else (d["reasons"][0] if d.get("reasons") else "")
         lines.append(f"| {name} | {len(chutes)} × {kinds} | **{cause or '—'}** | {words} |")
@@ -65,7 +66,7 @@ def _convergence_section(out, manifest):
              "| test | converged | R-hat max | bulk ESS min | tail ESS min | τ max [steps] | acceptance |",
              "|---|---|---|---|---|---|---|"]
     for name in manifest["tests"]:
-        s = _read(out / "tests" / name / "fit" / "summary.json")
+        s = _read(inside(out / "tests", name) / "fit" / "summary.json")
         d = s["diagnostics"]
         lines.append(f"| {name} | {'yes' if d['converged'] else 'NO'} | {d['rhat_max']:.4f} | "
                      f"{d['ess_bulk_min']:.0f} | {d['ess_tail_min']:.0f} | {d['tau_max']:.0f} | "
@@ -94,7 +95,7 @@ def _memo_section(out):
 def _montecarlo_section(out, manifest):
     lines = ["## Monte Carlo per configuration", ""]
     for name, like in manifest.get("configurations", {}).items():
-        folder = out / "montecarlo" / name
+        folder = inside(out / "montecarlo", name)
         doc = _read(folder / "np_vs_n.json")
         lines += [f"### {name} (flown like {like})", ""]
         if doc:
@@ -119,7 +120,7 @@ def _comparison_section(out, manifest):
              "| test | stage | measured (accelerometer) | population percentile | posterior percentile |",
              "|---|---|---|---|---|"]
     for name in manifest["tests"]:
-        doc = _read(out / "tests" / name / "compare" / "compare.json")
+        doc = _read(inside(out / "tests", name) / "compare" / "compare.json")
         if not doc:
             continue
         units = doc.get("units", {})
@@ -132,12 +133,12 @@ def _comparison_section(out, manifest):
                          f"{_fmt(pop.get('percentile'))} | {_fmt(post.get('percentile'))} |")
     lines.append("")
     for name in manifest["tests"]:
-        lines.append(_img(out, out / "tests" / name / "compare" / "compare.png", f"{name} load comparison"))
+        lines.append(_img(out, inside(out / "tests", name) / "compare" / "compare.png", f"{name} load comparison"))
     return lines + [""]
 
 
 def _test_section(out, name):
-    base = out / "tests" / name
+    base = inside(out / "tests", name)
     lines = [f"## Test {name}", "", "### Reduction (accelerometer against scaled load cells)", "",
              _img(out, base / "reduction" / "reduction.png", f"{name} reduction"), "",
              "### Posterior bands over the data", "", _img(out, base / "fit" / "bands.png", f"{name} bands"),

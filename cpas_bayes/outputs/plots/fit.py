@@ -21,12 +21,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Patch
 
+from cpas_bayes.core.inputs import inside
+from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.inference.check_draws import channel_sigma, posterior_matrix, posterior_median, predict_draws
 from cpas_bayes.inference.predictive_checks import STATISTICS, run_checks
 from cpas_bayes.inference.residuals import PARETO_K_LIMIT, stage_timing_medians
@@ -504,8 +504,7 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0):
 
     ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = claim_folder(out)
     rng = np.random.default_rng(rng)
     checks = run_checks(fit, rng=rng) if checks is None else checks
     pred = _band_draws(fit, n_draws, rng)
@@ -518,7 +517,7 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0):
         labels = [f"{s} [{CORNER_UNITS.get(s, '-')}]" for s in short]
         title = (f"{fit.model.test.name}: {pid} stage {k} posterior — narrow, single-peaked clouds mean the "
                  "data pin the parameters; tilted ones show trade-offs")
-        paths.append(_save(plot_corner(values, short, labels, title, rng=rng), out / f"corner_{pid}_s{k}.png"))
+        paths.append(_save(plot_corner(values, short, labels, title, rng=rng), inside(out, f"corner_{pid}_s{k}.png")))
     paths.append(_save(plot_trace(fit, worst_rhat_parameters(fit)), out / "trace.png"))
     paths.append(_save(plot_ppc(checks.ppc), out / "ppc.png"))
     paths.append(_save(plot_loo_pit(checks.loo_pit), out / "loo_pit.png"))

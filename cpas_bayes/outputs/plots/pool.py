@@ -15,6 +15,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
+from cpas_bayes.core.inputs import inside
 from cpas_bayes.outputs.figures import save_figure
 
 _TEST = "#3b6ea5"        # per-test posteriors
@@ -110,7 +111,7 @@ def write_pool_figures(result, out):
             fig = maker(result, kind, stage)
             if fig is None:
                 continue
-            path = out / f"{name}_{kind}_{stage}.png"
+            path = inside(out, f"{name}_{kind}_{stage}.png")
             save_figure(fig, path, dpi=110)
             plt.close(fig)
             paths.append(path)
