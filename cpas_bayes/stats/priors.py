@@ -48,7 +48,7 @@ import numba
 import numpy as np
 
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.inputs import check_keys, nearest, read_toml, shown
+from cpas_bayes.core.inputs import check_keys, inside, nearest, read_toml, shown
 from cpas_bayes.data.bundle import KINDS
 from cpas_bayes.stats.distributions import TABLE_FORMS, LogNormal, Normal, TruncNormal, Uniform
 
@@ -187,7 +187,7 @@ def _merge_kind(doc, file, base=None):
 
 def load_kind_priors(kind, override=None):
     """Priors for parachute ``kind`` from ``priors/<kind>.toml``, with a user's override file merged."""
-    path = PRIORS_DIR / f"{kind}.toml"
+    path = inside(PRIORS_DIR, f"{kind}.toml")  # a kind is a name, never a way out of the priors folder
     doc = _load_toml(path)
     stage, chute = _merge_kind(doc, path)
     sources = [str(path)]
