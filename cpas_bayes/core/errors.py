@@ -18,6 +18,11 @@ class InputError(Exception):
         self.fix = fix
         super().__init__(self._message())
 
+    def __reduce__(self):
+        # Rebuilt from its four parts, so that a refusal raised in a worker process (a campaign's
+        # step, a Monte Carlo batch) reaches the caller as itself, not as a failed unpickling.
+        return (type(self), (self.file, self.where, self.problem, self.fix))
+
     def _message(self):
         place = f", {self.where}" if self.where else ""
         return f"{self.file}{place}: {self.problem}. Fix: {self.fix}"
