@@ -26,7 +26,7 @@ def test_the_documented_example_config_reads(tmp_path):
     ("colour = 'red'\n", "colour"),
     ("[diagnose]\nmode = 'sometimes'\n", "diagnose.mode"),
     ("[diagnose]\ncandidates = ['wake']\n", "diagnose.candidates"),
-    ("[montecarlo]\nruns = 'many'\n", "montecarlo_runs"),
+    ("[montecarlo]\nruns = 'many'\n", "montecarlo.runs"),
 ])
 def test_a_bad_config_is_refused_naming_the_key(tmp_path, text, where):
     path = tmp_path / "c.toml"
