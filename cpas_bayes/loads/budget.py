@@ -9,12 +9,17 @@ stages, 8 bytes per number:
   C_k, t_k, ε per canopy stage; CDS_o per canopy; vehicle weight and CDS_V);
 * run outputs 2·K + K·P + 7·P·K (cluster-stage peaks and times, the tensions
   at them; per canopy stage peak, time, t_f, t_fp, n, n_p, V_i);
-times ``MEMORY_OVERHEAD`` for temporaries: about 0.85 kB per run for two
-two-stage Drogues and 1.8 kB for three three-stage Mains. ``runs.csv`` is
-built and written ``TABLE_CHUNK`` runs at a time, so its table adds a fixed
-amount (its columns twice, built as arrays and then framed, for one slice).
-A ``--compare-np`` Monte Carlo holds three results, a load comparison two
-(memo and fit), a campaign's pooled steps as many at once as it has workers.
+* per result held, inputs + outputs, plus one more set of outputs: the
+  batches' outputs and their concatenation exist together for a moment;
+
+times ``MEMORY_OVERHEAD`` for temporaries: 1.04 kB per run for two two-stage
+Drogues and 2.24 kB for three three-stage Mains (measured peaks above the
+process's own ~300 MB, 200,000 runs: 1.65 kB per Main run, 1.9 kB per Drogue
+run with ``--compare-np``, estimated 2.24 and 2.4 kB). ``runs.csv`` is built
+and written ``TABLE_CHUNK`` runs at a time, so its table adds a fixed amount
+(its columns twice, built as arrays and then framed, for one slice). A
+``--compare-np`` Monte Carlo holds three results, a load comparison two (memo
+and fit), a campaign's pooled steps as many at once as it has workers.
 
 :func:`check_runs` refuses a run count below 1, above ``MAX_RUNS`` (ten
 million: hours of simulation already), or whose memory exceeds
@@ -39,11 +44,11 @@ TABLE_CHUNK = 20_000          # runs per slice of runs.csv built at once (≤ 50
 
 def run_bytes(layout, results=1) -> int:
     """Bytes one run of ``layout`` (a :class:`~cpas_bayes.loads.montecarlo.ClusterLayout`) holds: ``results``
-    × (inputs + outputs) × ``MEMORY_OVERHEAD``."""
+    × (inputs + outputs) + outputs (batches and their concatenation), × ``MEMORY_OVERHEAD``."""
     P, K = layout.n_chutes, layout.n_stages
     inputs = 7 * P * K + P + 2
     outputs = 2 * K + K * P + 7 * P * K
-    return int(8 * results * (inputs + outputs) * MEMORY_OVERHEAD)
+    return int(8 * (results * (inputs + outputs) + outputs) * MEMORY_OVERHEAD)
 
 
 def _row_bytes(layout) -> int:
