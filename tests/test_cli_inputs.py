@@ -106,6 +106,9 @@ def bad_options(f):
     synth = ["synth", "--scenario", "drogue", "--seed", "1", "--out", "OUT"]
     return [
         ("reduce --scale", ["reduce", DROGUE, "--out", "OUT", "--scale", "quadratic"], "--scale"),
+        ("reduce --window infinite", ["reduce", DROGUE, "--out", "OUT", "--window=-inf:5"], "must be finite"),
+        ("reduce --window nan", ["reduce", DROGUE, "--out", "OUT", "--window", "nan:3"], "--window nan:3"),
+        ("reduce --window reversed", ["reduce", DROGUE, "--out", "OUT", "--window", "5:1"], "--window 5:1"),
         ("reduce --out is a file", ["reduce", DROGUE, "--out", f / "a-file"], "--out"),
         ("reduce --out under a file", ["reduce", DROGUE, "--out", f / "a-file" / "x"], "--out"),
         ("synth --magnitude nan", synth + ["--effect", "added_mass", "--magnitude", "nan"], "--magnitude"),
@@ -328,7 +331,7 @@ def test_runs_beyond_the_memory_budget_are_refused_in_well_under_a_second(files,
     allowed = int(re.search(r"give at most ([\d,]+) runs", err).group(1).replace(",", ""))
     layout = ClusterLayout.from_test(read_bundle(DROGUE))
     assert allowed * run_bytes(layout) + table_bytes(layout, allowed) <= 100_000_000
-    assert 100_000 < allowed < 200_000          # ≈ 0.68 kB per Drogue run, and a 24 MB table slice
+    assert 50_000 < allowed < 100_000           # ≈ 1.04 kB per Drogue run, and a 24 MB table slice
     # --compare-np keeps three results: fewer runs fit
     err = refused(capsys, ["montecarlo", "--memo", files / "memo", "--like", DROGUE, "--runs", "120000",
                            "--compare-np", "--out", out], out, "--runs")
@@ -344,6 +347,39 @@ def test_a_campaign_refuses_its_run_counts_before_any_step(files, fresh, capsys,
     out = fresh()
     refused(capsys, ["campaign", EXAMPLES_DIR, "--out", out, "--config", config, "--workers", "1"], out,
             "key 'montecarlo.runs'", "give at most")
+
+
+PEAK_RSS = """
+import resource, sys
+from cpas_bayes.app.cli import main
+code = main(sys.argv[1:])
+print(code, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+"""
+
+
+@pytest.mark.slow
+def test_the_memory_estimate_bounds_the_measured_peak(files, fresh):
+    """Peak resident memory of a real Monte Carlo process, above a 1,000-run one, is within the estimate."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+
+    def peak(runs):
+        argv = ["montecarlo", "--memo", files / "memo", "--like", DROGUE, "--runs", str(runs), "--out", fresh()]
+        proc = subprocess.run([sys.executable, "-c", PEAK_RSS, *map(str, argv)], capture_output=True, text=True,
+                              env=env, timeout=1800)
+        code, rss = proc.stdout.split()[-2:]
+        assert code == "0", proc.stderr
+        return int(rss)
+
+    runs = 100_000
+    layout = ClusterLayout.from_test(read_bundle(DROGUE))
+    estimate = runs * run_bytes(layout) + table_bytes(layout, runs)
+    grown = peak(runs) - peak(1000)
+    assert 0 < grown <= estimate
+    assert grown > 0.4 * estimate      # and not a wild over-estimate
 
 
 def test_the_library_refuses_too_many_runs_too(files):
@@ -534,3 +570,34 @@ def test_the_intact_inputs_still_load(files):
     assert ("drogue", "first", "ck") in memo.entries and len(memo.draws) == 4000
     fit = load_fit(files / "fit")
     assert fit.test == "EX-drogue" and fit.draws["D3.s1.n_p"].size == 200
+
+
+def test_a_campaign_refuses_its_damaged_fit_and_diagnosis_files(files, fresh):
+    from cpas_bayes.data.reduction import reduce_test
+
+    out = fresh()
+    fit = Path(shutil.copytree(files / "fit", out / "tests" / "EX-drogue" / "fit"))
+    test = read_bundle(DROGUE)
+    for text, where in (("{\"names\": [", "not valid JSON"), ("{\"names\": []}", "key 'names'")):
+        (fit / "map.json").write_text(text)
+        with pytest.raises(InputError) as err:
+            cp.load_baseline_fit(test, reduce_test(test), fit, cp.CampaignConfig())
+        assert str(fit / "map.json") in str(err.value) and where in str(err.value)
+        assert f"delete {fit}" in str(err.value)
+    diagnosis = out / "tests" / "EX-drogue" / "diagnosis"
+    diagnosis.mkdir()
+    for text, where in (("\x00garbage", "not valid JSON"), ('{"cause": "gremlins"}', "key 'cause'")):
+        (diagnosis / "diagnosis.json").write_text(text)
+        with pytest.raises(InputError) as err:
+            cp.pooled_fit_folder(out, "EX-drogue")
+        assert str(diagnosis / "diagnosis.json") in str(err.value) and where in str(err.value)
+
+
+def test_the_dask_client_gives_up_on_an_unreachable_scheduler_with_a_refusal():
+    pytest.importorskip("distributed")
+    from cpas_bayes.core.executor import CONNECT_TIMEOUT, DaskExecutor
+
+    started = time.perf_counter()
+    with pytest.raises(InputError, match="no Dask scheduler answered"):
+        DaskExecutor(f"tcp://127.0.0.1:{closed_port()}")
+    assert time.perf_counter() - started < CONNECT_TIMEOUT + 10
