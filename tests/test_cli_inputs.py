@@ -601,3 +601,18 @@ def test_the_dask_client_gives_up_on_an_unreachable_scheduler_with_a_refusal():
     with pytest.raises(InputError, match="no Dask scheduler answered"):
         DaskExecutor(f"tcp://127.0.0.1:{closed_port()}")
     assert time.perf_counter() - started < CONNECT_TIMEOUT + 10
+
+
+@pytest.mark.parametrize("content", [b"", b"\x89HDF\r\n\x1a\n" + b"\x00" * 40, b"not hdf5 at all"])
+def test_a_damaged_checkpoint_is_refused_with_what_to_delete(fresh, content):
+    from cpas_bayes.data.reduction import reduce_test
+    from cpas_bayes.inference.fit import SamplerOptions, prepare_model, run_ensemble
+
+    test = read_bundle(DROGUE)
+    model = prepare_model(test, reduce_test(test))
+    checkpoint = fresh().with_suffix(".h5")
+    checkpoint.write_bytes(content)
+    init = np.random.default_rng(0).normal(size=(2 * model.ndim + 2, model.ndim))
+    with pytest.raises(InputError) as err:
+        run_ensemble(model, init, 1, SamplerOptions(max_steps=100, check_every=50), checkpoint=checkpoint)
+    assert str(err.value).startswith(str(checkpoint)) and f"delete {checkpoint}" in str(err.value)

@@ -359,18 +359,24 @@ class _EnsembleStore:
     def _load(self, backend):
         import h5py
 
-        with h5py.File(self.checkpoint, "r") as f:
-            if f.attrs.get("fingerprint") != self.fingerprint:
-                raise InputError(self.checkpoint, "attribute 'fingerprint'",
-                                 "the checkpoint belongs to another model, data or seed",
-                                 "delete the checkpoint folder or fit into a new --out folder")
-            g = f["mcmc"]
-            backend.reset(int(g.attrs["nwalkers"]), int(g.attrs["ndim"]))
-            backend.chain = g["chain"][...]
-            backend.log_prob = g["log_prob"][...]
-            backend.accepted = g["accepted"][...]
-            backend.iteration = int(g.attrs["iteration"])
-            backend.random_state = tuple(v for k, v in sorted(g.attrs.items()) if k.startswith("random_state_"))
+        try:
+            with h5py.File(self.checkpoint, "r") as f:
+                if f.attrs.get("fingerprint") != self.fingerprint:
+                    raise InputError(self.checkpoint, "attribute 'fingerprint'",
+                                     "the checkpoint belongs to another model, data or seed",
+                                     "delete the checkpoint folder or fit into a new --out folder")
+                g = f["mcmc"]
+                backend.reset(int(g.attrs["nwalkers"]), int(g.attrs["ndim"]))
+                backend.chain = g["chain"][...]
+                backend.log_prob = g["log_prob"][...]
+                backend.accepted = g["accepted"][...]
+                backend.iteration = int(g.attrs["iteration"])
+                backend.random_state = tuple(v for k, v in sorted(g.attrs.items())
+                                             if k.startswith("random_state_"))
+        except (OSError, KeyError, ValueError, TypeError) as exc:  # truncated, garbage or incomplete file
+            raise InputError(self.checkpoint, "", f"not a readable checkpoint ({type(exc).__name__}: "
+                             f"{str(exc)[:120]})", f"delete {self.checkpoint} (that ensemble starts again) and "
+                             "re-run the same command") from None
         return backend
 
     def _save(self):
