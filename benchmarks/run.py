@@ -44,7 +44,8 @@ from scipy import optimize
 from cpas_bayes import __version__
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.bundle import example_bundles, read_bundle
-from cpas_bayes.inference.fit import SamplerOptions, first_guess, fit_model, prepare_model
+from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
+from cpas_bayes.inference.start import first_guess
 
 
 def nelder_mead_point_fit(model, gain_tol=0.01, max_restarts=100):
@@ -155,7 +156,8 @@ def bench_parallel():
     import numba
 
     from cpas_bayes.core.executor import Executor, ProcessExecutor
-    from cpas_bayes.inference.fit import _ensemble_task, find_map, initial_walkers, laplace_covariance
+    from cpas_bayes.inference.fit import _ensemble_task
+    from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
 
     test = read_bundle(next(p for p in example_bundles() if p.name.startswith("drogue")))
     model = prepare_model(test, reduce_test(test))

@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 from cpas_bayes.core.units import UNIT_SYSTEMS
 from cpas_bayes.data import limits
+from cpas_bayes.core.ownership import MARKER
 from cpas_bayes.data.bundle import CSV_NAME as CSV
 from cpas_bayes.data.bundle import (INFLATIONS, KINDS, PARACHUTE_KEYS, STAGE_KEYS, TOP_KEYS, VEHICLE_KEYS,
                                     read_bundle, write_bundle)
@@ -481,5 +482,5 @@ def test_valid_bundles_read_and_round_trip(bundle_files, snapshot, same_test, us
 
         written = write_bundle(test, Path(root) / "copy")
         assert sorted(p.name for p in Path(root).iterdir()) == ["bundle", "copy"]
-        assert sorted(p.name for p in written.iterdir()) == [CSV, TOML]
+        assert sorted(p.name for p in written.iterdir()) == sorted([MARKER, CSV, TOML])  # the marker: cpas-bayes wrote it
         same_test(read_bundle(written), test, rtol=1e-9)

@@ -8,6 +8,7 @@ import time
 import pytest
 
 from cpas_bayes.app import campaign as cp
+from cpas_bayes.app import campaign_config as cfg
 from cpas_bayes.app.cli import main
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.data.synth import write_synthetic
@@ -15,8 +16,8 @@ from cpas_bayes.data.synth import write_synthetic
 
 def test_the_documented_example_config_reads(tmp_path):
     path = tmp_path / "campaign.toml"
-    path.write_text(cp.CONFIG_EXAMPLE)
-    config = cp.load_config(path)
+    path.write_text(cfg.CONFIG_EXAMPLE)
+    config = cfg.load_config(path)
     assert config.name == "EDU Drogue and Main campaign"
     assert config.diagnose == "screen" and config.montecarlo_runs == 10000 and config.fit_ensembles == 4
 
@@ -26,13 +27,13 @@ def test_the_documented_example_config_reads(tmp_path):
     ("colour = 'red'\n", "colour"),
     ("[diagnose]\nmode = 'sometimes'\n", "diagnose.mode"),
     ("[diagnose]\ncandidates = ['wake']\n", "diagnose.candidates"),
-    ("[montecarlo]\nruns = 'many'\n", "montecarlo_runs"),
+    ("[montecarlo]\nruns = 'many'\n", "montecarlo.runs"),
 ])
 def test_a_bad_config_is_refused_naming_the_key(tmp_path, text, where):
     path = tmp_path / "c.toml"
     path.write_text(text)
     with pytest.raises(InputError) as err:
-        cp.load_config(path)
+        cfg.load_config(path)
     assert str(path) in str(err.value) and where in str(err.value)
 
 

@@ -20,8 +20,8 @@ import pytest
 
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.bundle import example_bundles, read_bundle
-from cpas_bayes.inference.fit import (SamplerOptions, find_map, first_guess, fit_model, fit_test, laplace_covariance,
-                            prepare_model, run_ensemble, initial_walkers)
+from cpas_bayes.inference.fit import SamplerOptions, fit_model, fit_test, prepare_model, run_ensemble
+from cpas_bayes.inference.start import find_map, first_guess, laplace_covariance, initial_walkers
 from cpas_bayes.data.synth import synthesize, truth_parameter_values
 
 COVERAGE_BAND = (0.80, 0.98)

@@ -9,7 +9,8 @@ from scipy.stats import multivariate_normal
 
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.bundle import example_bundles, read_bundle
-from cpas_bayes.inference.fit import first_guess, prepare_model
+from cpas_bayes.inference.fit import prepare_model
+from cpas_bayes.inference.start import first_guess
 from cpas_bayes.physics.inflation import cluster_drag_area, parachute_drag_area
 from cpas_bayes.stats.model import Extension, TestModel
 from cpas_bayes.data.synth import truth_parameter_values

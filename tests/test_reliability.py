@@ -298,7 +298,8 @@ def test_a_checkpoint_has_one_writer_and_a_dead_writers_lock_is_taken_over(tmp_p
 @pytest.fixture(scope="module")
 def drogue_start():
     from cpas_bayes.data.reduction import reduce_test
-    from cpas_bayes.inference.fit import find_map, initial_walkers, laplace_covariance, prepare_model
+    from cpas_bayes.inference.fit import prepare_model
+    from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
 
     test = read_bundle(DROGUE)
     model = prepare_model(test, reduce_test(test))

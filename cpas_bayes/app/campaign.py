@@ -43,7 +43,6 @@ import functools
 import hashlib
 import json
 import time as _time
-import tomllib
 import unicodedata
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -54,129 +53,15 @@ from cpas_bayes import __version__
 from cpas_bayes.data.bundle import TOML_NAME, read_bundle
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.core.errors import InputError
+from cpas_bayes.core.inputs import read_json
 from cpas_bayes.stats.model_terms import EXTENSIONS
 from cpas_bayes.core.files import atomic_directory, write_json
 from cpas_bayes.core.inputs import inside
 from cpas_bayes.core.ownership import check_output, claim_folder
-from cpas_bayes.inference.fit import SamplerOptions
+from cpas_bayes.app.campaign_config import CampaignConfig
 
 MEASUREMENT_CAUSES = ("friction_drift", "sensor_lag")
-CONFIG_NAME = "campaign.toml"
 STAMP = "stamp.json"
-
-
-# ---------------------------------------------------------------------------
-# configuration
-
-
-@dataclass(frozen=True)
-class CampaignConfig:
-    """Options of a campaign; a TOML file (``--config``) sets any of them."""
-
-    name: str | None = None               # report title; default the folder name
-    seed: int = 0
-    priors: str | None = None             # TOML replacing default priors (path relative to the config file)
-    decay: str = "linear"
-    fit_ensembles: int = 4
-    fit_max_steps: int = 20000
-    fit_tau_factor: float = 50.0
-    fit_check_every: int = 500
-    workers: int = 2
-    diagnose: str = "screen"              # "screen", "full" or "off"
-    candidates: tuple = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
-    montecarlo_runs: int = 10000
-    compare_runs: int = 2000
-    pool_draws: int = 10000
-
-    def sampler(self) -> SamplerOptions:
-        return SamplerOptions(seed=self.seed, n_ensembles=self.fit_ensembles, max_steps=self.fit_max_steps,
-                              tau_factor=self.fit_tau_factor, check_every=self.fit_check_every,
-                              workers=self.workers)
-
-
-# TOML layout: top-level keys and tables mapping onto CampaignConfig fields.
-_TOML_KEYS = {
-    (): {"name": "name", "seed": "seed", "priors": "priors", "decay": "decay", "workers": "workers"},
-    ("fit",): {"ensembles": "fit_ensembles", "max_steps": "fit_max_steps", "tau_factor": "fit_tau_factor",
-               "check_every": "fit_check_every"},
-    ("diagnose",): {"mode": "diagnose", "candidates": "candidates"},
-    ("montecarlo",): {"runs": "montecarlo_runs"},
-    ("compare",): {"runs": "compare_runs"},
-    ("pool",): {"draws": "pool_draws"},
-}
-
-CONFIG_EXAMPLE = """\
-# campaign.toml: every key optional
-name = "EDU Drogue and Main campaign"
-seed = 0
-# priors = "my_priors.toml"   # replaces tables of priors/*.toml
-decay = "linear"              # or "exponential"
-workers = 2
-
-[fit]
-ensembles = 4
-max_steps = 20000
-tau_factor = 50
-
-[diagnose]
-mode = "screen"               # "screen" (MAP screen, then sample), "full", "off"
-candidates = ["added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise"]
-
-[montecarlo]
-runs = 10000
-
-[compare]
-runs = 2000
-
-[pool]
-draws = 10000
-"""
-
-
-def load_config(path) -> CampaignConfig:
-    """Read a campaign TOML; refuse unknown keys and bad values naming the file, key and fix."""
-    path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(path, "", "no such file", "give the path of a campaign TOML file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(path, "", f"not valid TOML ({exc})", "fix the syntax; see 'cpas-bayes campaign --help'") \
-            from None
-    values = {}
-    for key, value in doc.items():
-        if isinstance(value, dict) and (key,) in _TOML_KEYS:
-            table = _TOML_KEYS[(key,)]
-            for sub, v in value.items():
-                if sub not in table:
-                    raise InputError(path, f"key '{key}.{sub}'", "unknown",
-                                     f"use one of {', '.join(f'{key}.{k}' for k in table)}")
-                values[table[sub]] = v
-        elif key in _TOML_KEYS[()]:
-            values[_TOML_KEYS[()][key]] = value
-        else:
-            known = list(_TOML_KEYS[()]) + [f"[{t[0]}]" for t in _TOML_KEYS if t]
-            raise InputError(path, f"key '{key}'", "unknown", f"use one of {', '.join(known)}")
-    defaults = CampaignConfig()
-    for name, value in values.items():
-        expected = type(getattr(defaults, name)) if getattr(defaults, name) is not None else str
-        if name == "candidates":
-            if not isinstance(value, list) or any(v not in EXTENSIONS for v in value):
-                raise InputError(path, "key 'diagnose.candidates'", f"{value!r} is not a list of extensions",
-                                 f"use names from {', '.join(EXTENSIONS)}")
-            values[name] = tuple(value)
-        elif expected is float and isinstance(value, int):
-            values[name] = float(value)
-        elif not isinstance(value, expected) or isinstance(value, bool):
-            raise InputError(path, f"key for '{name}'", f"{value!r} is not a {expected.__name__}",
-                             f"write a {expected.__name__} (see the example in 'cpas-bayes campaign --help')")
-    if values.get("diagnose", "screen") not in ("screen", "full", "off"):
-        raise InputError(path, "key 'diagnose.mode'", f"{values['diagnose']!r}", 'use "screen", "full" or "off"')
-    if values.get("decay", "linear") not in ("linear", "exponential"):
-        raise InputError(path, "key 'decay'", f"{values['decay']!r}", 'use "linear" or "exponential"')
-    if values.get("priors"):
-        values["priors"] = str((path.parent / values["priors"]).resolve())
-    return replace(defaults, **values)
 
 
 # ---------------------------------------------------------------------------
@@ -221,11 +106,11 @@ def run_step(folder, key, work, records, name, echo):
     stamp = folder / STAMP
     if stamp.is_file():
         try:
-            if json.loads(stamp.read_text())["key"] == key:
+            if json.loads(stamp.read_text(encoding="utf-8"))["key"] == key:
                 records.append(StepRecord(name, key, "cached", 0.0))
                 echo(f"  {name}: unchanged, kept")
                 return False
-        except (json.JSONDecodeError, KeyError):
+        except (ValueError, KeyError, TypeError, OSError):   # a damaged stamp: the step runs again
             pass
     started = _time.perf_counter()
     with atomic_directory(folder) as tmp:
@@ -280,6 +165,22 @@ def validate_all(paths):
 def test_folder(out, name, *parts):
     """``OUT/tests/<name>/<parts>``, refused if the test's name would lead outside ``OUT/tests``."""
     return inside(Path(out) / "tests", name).joinpath(*parts)
+def check_run_counts(tests, config, workers=1):
+    """Refuse, before any step, Monte Carlo and comparison run counts beyond :mod:`cpas_bayes.loads.budget`'s
+    limits for these tests' configurations, with ``workers`` pooled steps side by side."""
+    from cpas_bayes.loads.budget import check_runs
+    from cpas_bayes.loads.montecarlo import ClusterLayout
+
+    layouts = {}
+    for test in tests:
+        layouts.setdefault(configuration_of(test), []).append(ClusterLayout.from_test(test))
+    parallel = max(1, min(int(workers), len(layouts) + len(tests)))
+    for group in layouts.values():
+        check_runs(group[0], config.montecarlo_runs, results=3, table=True, parallel=parallel,
+                   source="campaign options", where="key 'montecarlo.runs'")
+        for layout in group:
+            check_runs(layout, config.compare_runs, results=2, parallel=parallel, source="campaign options",
+                       where="key 'compare.runs'", what="load comparison")
 
 
 def configuration_of(test) -> str:
@@ -325,17 +226,23 @@ def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
 def load_baseline_fit(test, reduction, folder, config):
     """The baseline fit of a test from its fit folder (model rebuilt from ``reduction``, MAP from map.json)."""
     from cpas_bayes.inference.fit import Fit, SamplingResult, prepare_model
-    from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, SUMMARY_NAME, load_datatree
+    from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, load_datatree, read_summary
 
     folder = Path(folder)
     model = prepare_model(test, reduction, priors=config.priors, decay=config.decay)
-    m = json.loads((folder / "map.json").read_text())
-    if m["names"] != list(model.names):
-        raise InputError(folder / "map.json", "key 'names'", "does not match the model's parameters",
-                         "delete the fit folder so that the campaign refits the test")
-    sampling = SamplingResult(names=list(model.names), runs=[], theta_map=np.array(m["theta"]),
-                              log_post_map=float(m["log_posterior"]), options=config.sampler())
-    summary = json.loads((folder / SUMMARY_NAME).read_text())
+    fix = f"delete {folder} so that the campaign refits the test, and re-run the campaign"
+    m = read_json(folder / "map.json", fix, what="MAP file")
+    theta, lp = m.get("theta"), m.get("log_posterior")
+    if m.get("names") != list(model.names):
+        raise InputError(folder / "map.json", "key 'names'", "does not match the model's parameters", fix)
+    if (not isinstance(theta, list) or len(theta) != len(model.names)
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in theta)):
+        raise InputError(folder / "map.json", "key 'theta'", f"not {len(model.names)} finite numbers", fix)
+    if isinstance(lp, bool) or not isinstance(lp, (int, float)):
+        raise InputError(folder / "map.json", "key 'log_posterior'", "missing or not a number", fix)
+    sampling = SamplingResult(names=list(model.names), runs=[], theta_map=np.array(theta, float),
+                              log_post_map=float(lp), options=config.sampler())
+    summary = read_summary(folder)
     return Fit(model, sampling, load_datatree(folder / POSTERIOR_NAME), summary)
 
 
@@ -446,11 +353,23 @@ class CampaignResult:
     seconds: float = 0.0
 
 
+def diagnosed_cause(out, test_name):
+    """The cause named in a test's ``diagnosis.json`` (None without a diagnosis); refuses a damaged file."""
+    diag = test_folder(out, test_name, "diagnosis")
+    doc = diag / "diagnosis.json"
+    if not doc.is_file():
+        return None
+    cause = read_json(doc, f"delete {diag} and re-run the campaign", what="diagnosis").get("cause")
+    if cause != "none" and cause not in EXTENSIONS:
+        raise InputError(doc, "key 'cause'", f"{cause!r:.40} is not 'none' or an extension",
+                         f"delete {diag} and re-run the campaign")
+    return cause
+
+
 def pooled_fit_folder(out, test_name):
     """The fit a test contributes to the memo: its extended fit when a measurement cause was named."""
     diag = test_folder(out, test_name, "diagnosis")
-    doc = diag / "diagnosis.json"
-    if doc.is_file() and json.loads(doc.read_text())["cause"] in MEASUREMENT_CAUSES and (diag / "extended").is_dir():
+    if diagnosed_cause(out, test_name) in MEASUREMENT_CAUSES and (diag / "extended").is_dir():
         return diag / "extended"
     return test_folder(out, test_name, "fit")
 
@@ -490,6 +409,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
         name = configuration_of(test)
         inside(out / "montecarlo", name)
         configs.setdefault(name, (path, test))
+    check_run_counts(tests, config, executor.workers)
     claim_folder(out)
     echo(f"{len(tests)} bundles valid in {folder}; running on {executor.describe()}")
     records: list[StepRecord] = []
@@ -510,10 +430,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     else:  # fewer tests than workers: one test at a time, each fit's ensembles side by side
         results = [_test_task(job, echo, executor) for job in jobs]
     _collect(results, records, echo)
-    causes = {}
-    for test in tests:
-        doc = test_folder(out, test.name, "diagnosis", "diagnosis.json")
-        causes[test.name] = json.loads(doc.read_text())["cause"] if doc.is_file() else None
+    causes = {test.name: diagnosed_cause(out, test.name) for test in tests}
 
     pool_sources = {t.name: pooled_fit_folder(out, t.name) for t in tests}
     pool_key = _digest(sorted(fit_keys.items()), sorted(diag_keys.items()), config.pool_draws, config.seed)

@@ -27,7 +27,9 @@ from cpas_bayes import __version__
 from cpas_bayes.data.bundle import KINDS, read_bundle, summary
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.ownership import check_output, output_error
-from cpas_bayes.app.campaign import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
+from cpas_bayes.app.campaign_config import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
+from cpas_bayes.app.options import (BATCH, ENSEMBLES, RUNS, SEED, WORKERS, check_scheduler, out_option,
+                                    priors_option, seed_option)
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
 
@@ -44,10 +46,10 @@ def _on_interrupt(message):
 def parallel_options(default_workers=2, what="tasks", note=""):
     """``--workers`` and ``--scheduler`` for a command that runs independent tasks."""
     def decorate(fn):
-        fn = click.option("--scheduler", default=None, metavar="ADDRESS|local",
+        fn = click.option("--scheduler", default=None, metavar="ADDRESS|local", callback=check_scheduler,
                           help="Run the tasks on Dask: a scheduler address (tcp://HOST:PORT) or 'local' for a "
                                "LocalCluster of --workers processes. Results are identical to the local pool.")(fn)
-        return click.option("--workers", type=click.IntRange(min=1), default=default_workers,
+        return click.option("--workers", type=WORKERS, default=default_workers,
                             show_default=default_workers is not None,
                             help=f"Processes running {what} at once (one BLAS thread each){note}.")(fn)
     return decorate
@@ -121,8 +123,7 @@ def validate(bundles, as_json, priors):
 
 
 @cli.command()
-@click.option("--out", type=click.Path(path_type=Path), default=Path("reports/demo"), show_default=True,
-              help="Folder for the demo report.")
+@out_option("Folder for the demo report.", default=Path("reports/demo"), show_default=True)
 def demo(out):
     """Run the main job on the bundled data and write its report."""
     from cpas_bayes.app.demo import run_demo
@@ -134,9 +135,8 @@ def demo(out):
 
 @cli.command("reduce")
 @click.argument("bundle", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), required=True,
-              help="Folder for reduced.csv, reduction.json and reduction.png.")
-@click.option("--scale", default="constant", show_default=True, metavar="constant|linear",
+@out_option("Folder for reduced.csv, reduction.json and reduction.png.", required=True)
+@click.option("--scale", type=click.Choice(["constant", "linear"]), default="constant", show_default=True,
               help="Load-cell friction scale factor: one constant, or a linear trend through the windows.")
 @click.option("--window", "windows", multiple=True, metavar="T0:T1",
               help="Steady-state calibration window in seconds (repeat for several); replaces the automatic ones.")
@@ -186,14 +186,16 @@ def reduce_command(bundle, out, scale, windows):
               help="Hidden effect to put in the data (at most one).")
 @click.option("--magnitude", type=float, default=None,
               help="Effect size (k_a; friction drop; lag in s; breathing amplitude). Drawn from the seed if omitted.")
-@click.option("--seed", type=int, required=True, help="Seed of the truth, the effect size and the noise.")
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Bundle folder to write.")
+@click.option("--seed", type=SEED, required=True, help="Seed of the truth, the effect size and the noise.")
+@out_option("Bundle folder to write.", required=True)
 def synth_command(scenario, effect, magnitude, seed, out):
     """Simulate a synthetic flight test with known truth and write it as a bundle with truth.json."""
-    from cpas_bayes.data.synth import write_synthetic
+    from cpas_bayes.data.synth import magnitude_problem, write_synthetic
 
     if magnitude is not None and effect == "none":
         raise click.BadParameter("a magnitude needs an effect other than 'none'", param_hint="--magnitude")
+    if magnitude is not None and magnitude_problem(effect, magnitude):
+        raise click.BadParameter(magnitude_problem(effect, magnitude), param_hint="--magnitude")
     check_output(out)
     try:
         folder = write_synthetic(scenario, effect, seed, out, magnitude=magnitude)
@@ -204,14 +206,14 @@ def synth_command(scenario, effect, magnitude, seed, out):
 
 @cli.command("fit")
 @click.argument("bundle", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for the fit's outputs.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the MAP starts and the sampler.")
-@click.option("--priors", type=click.Path(path_type=Path), default=None,
-              help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
+@out_option("Folder for the fit's outputs.", required=True)
+@seed_option("Seed of the MAP starts and the sampler.")
+@priors_option()
 @click.option("--decay", type=click.Choice(["linear", "exponential"]), default="linear", show_default=True,
               help="Shape of the drag-area decay after the over-inflation peak.")
 @parallel_options(what="ensembles")
-@click.option("--ensembles", type=int, default=4, show_default=True, help="Independent emcee ensembles (R-hat).")
+@click.option("--ensembles", type=ENSEMBLES, default=4, show_default=True,
+              help="Independent emcee ensembles (R-hat).")
 def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles):
     """Posterior of every inflation parameter of one flight test (emcee).
 
@@ -246,10 +248,10 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
               help="memo.toml (or its folder) with the population distributions.")
 @click.option("--like", "like", type=click.Path(path_type=Path), required=True,
               help="Bundle whose configuration (parachutes, vehicle, initial state, cutter times) is flown.")
-@click.option("--runs", type=click.IntRange(min=1), default=10000, show_default=True, help="Monte Carlo runs.")
-@click.option("--out", type=click.Path(path_type=Path), required=True,
-              help="Folder for runs.csv, summary.json, peak_loads.png and fill_times.png.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every draw.")
+@click.option("--runs", type=RUNS, default=10000, show_default=True,
+              help="Monte Carlo runs (at most 10,000,000 and what fits in half the available memory).")
+@out_option("Folder for runs.csv, summary.json, peak_loads.png and fill_times.png.", required=True)
+@seed_option("Seed of every draw.")
 @click.option("--mode", type=click.Choice(["n_p", "n"]), default="n_p", show_default=True,
               help="Disperse n_p and derive n per run (Eq. 18), or disperse n itself (the old way).")
 @click.option("--independent", is_flag=True,
@@ -258,20 +260,23 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
 @click.option("--compare-np", "compare_np", is_flag=True,
               help="Also run both modes with independent parameters and write np_vs_n.json and "
                    "fill_time_np_vs_n.png (peak fill times outside the tested range).")
-@click.option("--batch", type=click.IntRange(min=1), default=None, help="Runs simulated at once (default 1000).")
+@click.option("--batch", type=BATCH, default=None, help="Runs simulated at once (default 1000).")
 @parallel_options(default_workers=1, what="batches of runs")
 def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, compare_np, batch, workers, scheduler):
     """Monte Carlo peak loads and fill times of a test's cluster with parameters from the model memo."""
     import numpy as np
 
     from cpas_bayes.population.memo import load_memo
+    from cpas_bayes.loads.budget import check_runs
     from cpas_bayes.loads.fill_time import compare_fill_time_dispersion
-    from cpas_bayes.loads.montecarlo import run_monte_carlo
+    from cpas_bayes.loads.montecarlo import ClusterLayout, run_monte_carlo
     from cpas_bayes.outputs.montecarlo import write_fill_time_comparison, write_monte_carlo
 
     check_output(out)
     memo = load_memo(memo_path)
     test = read_bundle(like)
+    check_runs(ClusterLayout.from_test(test), runs, results=3 if compare_np else 1, table=True,
+               source="command line", where=f"option --runs {runs}")
     rng = np.random.default_rng(seed)
     with _executor(workers, scheduler) as executor:
         result = run_monte_carlo(memo, test, runs, rng, mode=mode, joint=not independent, batch=batch,
@@ -304,10 +309,9 @@ def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, comp
               help="memo.toml: compare with the population predictive (Monte Carlo of this configuration).")
 @click.option("--fit", "fit_path", type=click.Path(path_type=Path), default=None,
               help="Fit folder of this test: compare with its posterior predictive.")
-@click.option("--out", type=click.Path(path_type=Path), required=True, help="Folder for compare.json and compare.png.")
-@click.option("--runs", type=click.IntRange(min=1), default=2000, show_default=True,
-              help="Predicted runs per source.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every draw.")
+@out_option("Folder for compare.json and compare.png.", required=True)
+@click.option("--runs", type=RUNS, default=2000, show_default=True, help="Predicted runs per source.")
+@seed_option("Seed of every draw.")
 @click.option("--mode", type=click.Choice(["n_p", "n"]), default="n_p", show_default=True,
               help="Fill constant dispersed in the memo Monte Carlo.")
 @click.option("--independent", is_flag=True, help="Memo Monte Carlo with independently drawn parameters.")
@@ -315,7 +319,9 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
     """Measured peak loads against predicted distributions, with the measurement's sigma."""
     import numpy as np
 
+    from cpas_bayes.loads.budget import check_runs
     from cpas_bayes.loads.compare import compare_loads
+    from cpas_bayes.loads.montecarlo import ClusterLayout
     from cpas_bayes.outputs.compare import write_comparison
     from cpas_bayes.population.memo import load_memo
     from cpas_bayes.inference.fit_folder import load_fit
@@ -326,6 +332,8 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
     test = read_bundle(bundle)
     memo = load_memo(memo_path) if memo_path is not None else None
     fit = load_fit(fit_path) if fit_path is not None else None
+    check_runs(ClusterLayout.from_test(test), runs, results=(memo is not None) + (fit is not None),
+               source="command line", where=f"option --runs {runs}", what="load comparison")
     comparison = compare_loads(test, memo=memo, fit=fit, runs=runs, rng=np.random.default_rng(seed), mode=mode,
                                joint=not independent)
     paths = write_comparison(comparison, out, extra={"seed": seed})
@@ -340,10 +348,8 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
 
 @cli.command("pool")
 @click.argument("fitdirs", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), required=True,
-              help="Memo folder: memo.toml, memo_draws.csv, memo.md and figures.")
-@click.option("--seed", type=int, default=0, show_default=True,
-              help="Seed of the subsampling, hyper-posterior and population-predictive draws.")
+@out_option("Memo folder: memo.toml, memo_draws.csv, memo.md and figures.", required=True)
+@seed_option("Seed of the subsampling, hyper-posterior and population-predictive draws.")
 def pool_command(fitdirs, out, seed):
     """Pool fitted tests into population dispersions: the model memo.
 
@@ -378,11 +384,9 @@ def pool_command(fitdirs, out, seed):
 
 @cli.command("diagnose")
 @click.argument("bundle", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), required=True,
-              help="Folder for diagnosis.json, diagnosis.md, candidates.csv and the figures.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every fit of the comparison.")
-@click.option("--priors", type=click.Path(path_type=Path), default=None,
-              help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
+@out_option("Folder for diagnosis.json, diagnosis.md, candidates.csv and the figures.", required=True)
+@seed_option("Seed of every fit of the comparison.")
+@priors_option()
 @click.option("--candidates", default=",".join(CANDIDATE_NAMES), show_default=True,
               help="Comma-separated extensions to try against the baseline.")
 @parallel_options(what="candidate fits (or one fit's ensembles)")
@@ -398,14 +402,19 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
     from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER, DiagnoseOptions
     from cpas_bayes.inference.diagnose import diagnose_test
     from cpas_bayes.outputs.diagnosis import write_diagnosis
+    from cpas_bayes.core.inputs import did_you_mean
     from cpas_bayes.stats.model_terms import EXTENSIONS
 
     check_output(out)
     names = tuple(c.strip() for c in candidates.split(",") if c.strip())
     unknown = [n for n in names if n not in EXTENSIONS]
     if unknown or not names:
-        raise click.BadParameter(f"unknown extension(s) {', '.join(unknown) or '(none given)'}; use any of "
+        raise click.BadParameter(f"unknown extension(s) {', '.join(unknown) or '(none given)'}"
+                                 f"{did_you_mean(unknown[0], EXTENSIONS) if unknown else ''}; use any of "
                                  f"{', '.join(EXTENSIONS)}", param_hint="--candidates")
+    if len(set(names)) < len(names):
+        raise click.BadParameter(f"{sorted({n for n in names if names.count(n) > 1})[0]} is given twice",
+                                 param_hint="--candidates")
     test = read_bundle(bundle)
     _check_priors([p.kind for p in test.parachutes], priors)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
@@ -426,9 +435,8 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
 @cli.command("campaign", epilog="A campaign TOML (--config), every key optional:\n\n"
              + "\n\n".join("\b\n" + part for part in CAMPAIGN_EXAMPLE.strip().split("\n\n")))
 @click.argument("folder", type=click.Path(path_type=Path))
-@click.option("--out", type=click.Path(path_type=Path), required=True,
-              help="Folder for every step's outputs and the report (index.html, report.md).")
-@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None,
+@out_option("Folder for every step's outputs and the report (index.html, report.md).", required=True)
+@click.option("--config", "config_path", type=click.Path(path_type=Path, exists=True, dir_okay=False), default=None,
               help="Campaign TOML with the options (see below).")
 @parallel_options(default_workers=None, what="tests", note="; overrides --config, default 2")
 @click.option("--diagnose", "diagnose_mode", type=click.Choice(["screen", "full", "off"]), default=None,
@@ -443,7 +451,8 @@ def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode
     """
     from dataclasses import replace
 
-    from cpas_bayes.app.campaign import CampaignConfig, load_config, run_campaign
+    from cpas_bayes.app.campaign import run_campaign
+    from cpas_bayes.app.campaign_config import CampaignConfig, load_config
 
     check_output(out)
     config = load_config(config_path) if config_path else CampaignConfig()

@@ -29,6 +29,12 @@ on Linux, a poll elsewhere) and asks the kernel for SIGTERM when its own
 parent, the fork server, goes (``PR_SET_PDEATHSIG``). On SIGTERM a worker
 removes the temporary files of its writes under way and exits at once, so no
 orphan goes on writing checkpoints beside a rerun.
+Limits checked before any work (by the command line and campaign configs):
+at most ``MAX_LOCAL_WORKERS`` local processes (twice this machine's cores,
+at least 4: the tasks are compute-bound, and every worker holds its own copy
+of the numerical libraries and the task's data), and a Dask scheduler address
+must answer a TCP connection within ``CONNECT_TIMEOUT`` seconds
+(:func:`scheduler_problem`).
 """
 
 from __future__ import annotations
@@ -36,8 +42,24 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import socket
 import sys
 import time
+from urllib.parse import urlsplit
+
+CONNECT_TIMEOUT = 5.0                      # s, for a Dask scheduler to answer
+SCHEDULER_PROTOCOLS = ("tcp", "tls", "ws", "wss")
+DEFAULT_SCHEDULER_PORT = 8786              # Dask's
+
+
+def _cores():
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+MAX_LOCAL_WORKERS = max(4, 2 * _cores())
 
 _BLAS_LIMIT = None  # keeps the threadpoolctl limiter alive in a worker
 _IN_WORKER = False  # set in worker processes: tasks started from a task run in it, one after another
@@ -332,7 +354,14 @@ class DaskExecutor(Executor):
                                         dashboard_address=None, silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
         else:
-            self.client = Client(address)
+            try:
+                self.client = Client(address, timeout=f"{CONNECT_TIMEOUT:g}s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                from cpas_bayes.core.errors import InputError
+
+                raise InputError("command line", f"option --scheduler {address}",
+                                 f"no Dask scheduler answered within {CONNECT_TIMEOUT:g} s ({exc})",
+                                 SCHEDULER_FIX) from None
         self.client.run(limit_blas_threads)
         self.workers = max(1, len(self.client.scheduler_info()["workers"]))
 
@@ -362,6 +391,59 @@ class DaskExecutor(Executor):
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
+
+
+SCHEDULER_FIX = ("start the scheduler ('dask scheduler') and its workers, check the host and port "
+                 "(tcp://HOST:PORT), use --scheduler local, or leave --scheduler out to run on local processes")
+
+
+def parse_scheduler(address):
+    """(protocol, host, port) of a Dask scheduler address (``tcp://HOST:PORT``; ``HOST:PORT`` means tcp).
+
+    ValueError saying what is wrong with it otherwise.
+    """
+    text = str(address).strip()
+    if not text:
+        raise ValueError("an empty address")
+    if "://" not in text:
+        text = f"tcp://{text}"
+    parts = urlsplit(text)
+    if parts.scheme not in SCHEDULER_PROTOCOLS:
+        raise ValueError(f"protocol '{parts.scheme}' is not one of {', '.join(SCHEDULER_PROTOCOLS)}")
+    if parts.path not in ("", "/") or parts.query or parts.fragment:
+        raise ValueError("an address is PROTOCOL://HOST:PORT, with nothing after the port")
+    try:
+        port = parts.port
+    except ValueError:
+        raise ValueError("the port is not a number from 1 to 65535") from None
+    if not parts.hostname:
+        raise ValueError("no host")
+    return parts.scheme, parts.hostname, port if port else DEFAULT_SCHEDULER_PORT
+
+
+def scheduler_problem(scheduler, timeout=CONNECT_TIMEOUT):
+    """Why ``--scheduler`` cannot be used (in words), or None: the address is checked and, for a remote
+    scheduler, a TCP connection must open within ``timeout`` s; ``local`` needs the ``distributed`` package."""
+    if scheduler is None:
+        return None
+    import importlib.util
+
+    if importlib.util.find_spec("distributed") is None:
+        return "the Dask engine needs the 'distributed' package: pip install 'cpas_bayes[dask]'"
+    if scheduler == "local":
+        return None
+    try:
+        _, host, port = parse_scheduler(scheduler)
+    except ValueError as exc:
+        return f"'{scheduler}' is not a Dask scheduler address: {exc}"
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except socket.timeout:
+        return f"no Dask scheduler answered at {host}:{port} within {timeout:g} s"
+    except OSError as exc:
+        return f"no Dask scheduler reachable at {host}:{port} ({exc.strerror or exc})"
+    return None
 
 
 def in_worker() -> bool:

@@ -24,11 +24,19 @@ Limits (stated in the README's reliability section):
 
 Text from a file that is shown in a message goes through :func:`shown`, so a
 refusal cannot carry a terminal escape or a megabyte of text to a user.
+
+Result files the package wrote itself and reads back (``summary.json`` of a
+fit, ``map.json``) go through :func:`read_json`: at most ``MAX_JSON_BYTES``,
+UTF-8, valid JSON (``NaN``/``Infinity`` refused), nested at most
+``MAX_JSON_DEPTH`` deep, and an object at the top; its ``fix`` says what to
+re-run. :func:`nearest` finds the valid name a misspelt key most likely meant,
+:func:`did_you_mean` says it in a message.
 """
 
 from __future__ import annotations
 
 import difflib
+import json
 import sys
 import tomllib
 from pathlib import Path
@@ -41,6 +49,8 @@ MAX_STRING = 10_000
 MAX_NAME = 64
 MAX_TEXT = 128
 _INT_LIMIT = 2**63
+MAX_JSON_BYTES = 50_000_000
+MAX_JSON_DEPTH = 64
 
 
 def read_toml(path, error=InputError, fix_syntax="correct the TOML syntax at that line"):
@@ -222,3 +232,60 @@ def inside(parent, name):
         raise InputError(parent, f"name {name!r}", f"would place a file outside {parent}",
                          "rename the test, parachute or configuration to a plain name")
     return child
+
+
+def did_you_mean(name, valid):
+    """`` (did you mean 'x'?)`` for the valid name closest to ``name`` (:func:`nearest`), or ``""`` if none is close."""
+    near = nearest(str(name), valid)
+    return f" (did you mean '{near}'?)" if near else ""
+
+
+def _json_depth(value, limit):
+    """True when ``value`` nests deeper than ``limit`` (iteratively: no recursion to exhaust)."""
+    stack = [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        if depth > limit:
+            return True
+        if isinstance(item, dict):
+            stack.extend((v, depth + 1) for v in item.values())
+        elif isinstance(item, list):
+            stack.extend((v, depth + 1) for v in item)
+    return False
+
+
+def _no_constant(name):
+    raise ValueError(f"{name} is not JSON")
+
+
+def read_json(path, fix, error=InputError, what="JSON file"):
+    """The object in JSON file ``path`` (a dict), within the limits above; ``error(path, …, fix)`` otherwise.
+
+    ``fix`` says what rewrites the file (e.g. "re-run 'cpas-bayes fit BUNDLE --out FOLDER'").
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise error(path, "", f"is a folder, not a {what}", fix)
+    if not path.is_file():
+        raise error(path, "", f"{what} not found", fix)
+    size = path.stat().st_size
+    if size > MAX_JSON_BYTES:
+        raise error(path, "", f"{size:,} bytes, more than the {MAX_JSON_BYTES:,} a {what} may have", fix)
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise error(path, f"byte {exc.start}", "not UTF-8 text (a damaged file?)", fix) from None
+    if not text.strip():
+        raise error(path, "", f"empty (a truncated {what}?)", fix)
+    try:
+        doc = json.loads(text, parse_constant=_no_constant)
+    except (json.JSONDecodeError, ValueError) as exc:
+        raise error(path, "", f"not valid JSON ({exc})", fix) from None
+    except RecursionError:
+        raise error(path, "", f"nested more than {MAX_JSON_DEPTH} deep", fix) from None
+    if _json_depth(doc, MAX_JSON_DEPTH):
+        raise error(path, "", f"nested more than {MAX_JSON_DEPTH} deep", fix)
+    if not isinstance(doc, dict):
+        raise error(path, "", f"holds a JSON {type(doc).__name__}, not an object", fix)
+    return doc

@@ -335,7 +335,11 @@ def parse_window(text, source=""):
     try:
         if len(parts) != 2:
             raise ValueError
-        return float(parts[0]), float(parts[1])
+        window = float(parts[0]), float(parts[1])
     except ValueError:
         raise InputError(source or "command line", f"option --window {text}",
                          "not a window of the form T0:T1", "write --window 3.0:9.0 (seconds)") from None
+    if not all(math.isfinite(t) for t in window):
+        raise InputError(source or "command line", f"option --window {text}", "T0 and T1 must be finite numbers",
+                         "write --window 3.0:9.0 (seconds)")
+    return window

@@ -49,6 +49,10 @@ breathing      each stage's peak, damped (both       (f: 0.8–2 Hz Drogue,
                channels)                             0.2–0.6 Hz Main; ζ: 0.05–0.3)
 ============== ===================================== ==================== =================
 
+A magnitude given (``--magnitude``) must be finite and within
+``EFFECT_MAGNITUDE_LIMITS``: k_a 0–5, friction fall within ±0.5, lag 0–1 s,
+amplitude 0 ≤ A < 1.
+
 Random streams: ``draw_truth`` and ``draw_effect_params`` take their own
 generators and ``simulate_test`` draws all measurement noise from its
 generator in a fixed order that does not depend on the effect, so the same
@@ -58,6 +62,7 @@ seed with and without an effect differs only through the effect.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -82,6 +87,15 @@ EFFECT_MAGNITUDE_RANGE = {
     "friction_drift": (0.03, 0.08),    # s_start − s_end
     "sensor_lag": (0.020, 0.080),      # s
     "canopy_breathing": (0.03, 0.10),  # amplitude A
+}
+# What a given magnitude may be: (low, high, low included, high included, what it is). A few times the
+# drawn range at most: beyond it the "test" is no parachute test (a lag longer than a stage, an added
+# mass many times the canopy's), and a non-finite one would write a bundle no command reads.
+EFFECT_MAGNITUDE_LIMITS = {
+    "added_mass": (0.0, 5.0, True, True, "k_a"),
+    "friction_drift": (-0.5, 0.5, False, False, "the fall of the friction factor"),
+    "sensor_lag": (0.0, 1.0, True, True, "the load cells' delay in s"),
+    "canopy_breathing": (0.0, 1.0, True, False, "the relative amplitude A"),
 }
 BREATHING_FREQUENCY_HZ = {"drogue": (0.8, 2.0), "main": (0.2, 0.6)}
 BREATHING_DAMPING_RATIO = (0.05, 0.3)
@@ -251,24 +265,35 @@ def draw_effect_params(effect: str, scenario: str, rng: np.random.Generator, mag
         return {}
     low, high = EFFECT_MAGNITUDE_RANGE[effect]
     value = float(rng.uniform(low, high)) if magnitude is None else float(magnitude)
+    problem = magnitude_problem(effect, value)
+    if problem:
+        raise ValueError(problem)
     if effect == "added_mass":
-        if value < 0:
-            raise ValueError("added_mass magnitude k_a must be ≥ 0")
         return {"magnitude": value, "k_a": value}
     if effect == "friction_drift":
-        if not -0.5 < value < 0.5:
-            raise ValueError("friction_drift magnitude (the fall of the friction factor) must be within ±0.5")
         return {"magnitude": value}
     if effect == "sensor_lag":
-        if value < 0:
-            raise ValueError("sensor_lag magnitude (a delay in s) must be ≥ 0")
         return {"magnitude": value, "lag": value}
     # canopy_breathing
-    if not 0 <= value < 1:
-        raise ValueError("canopy_breathing magnitude (the relative amplitude A) must be in [0, 1)")
     return {"magnitude": value, "amplitude": value,
             "frequency_hz": float(rng.uniform(*BREATHING_FREQUENCY_HZ[scenario])),
             "damping_ratio": float(rng.uniform(*BREATHING_DAMPING_RATIO))}
+
+
+def magnitude_problem(effect: str, value) -> str | None:
+    """Why ``value`` cannot be the magnitude of ``effect`` (a sentence), or None."""
+    if effect == "none":
+        return "a magnitude needs an effect other than 'none'"
+    low, high, low_in, high_in, what = EFFECT_MAGNITUDE_LIMITS[effect]
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return f"{effect} magnitude ({what}) must be a number, got {value!r}"
+    inside = (value >= low if low_in else value > low) and (value <= high if high_in else value < high)
+    if not math.isfinite(value) or not inside:
+        return (f"{effect} magnitude ({what}) must be in {'[' if low_in else '('}{low:g}, {high:g}"
+                f"{']' if high_in else ')'}, got {value:g}")
+    return None
 
 
 def simulation_options(effect: str, effect_params: dict) -> SimulationOptions:

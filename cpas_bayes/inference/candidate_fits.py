@@ -18,7 +18,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cpas_bayes.inference.fit import Fit, SamplerOptions, find_map, fit_model, prepare_model
+from cpas_bayes.inference.fit import Fit, SamplerOptions, fit_model, prepare_model
+
+from cpas_bayes.inference.start import find_map
 from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
 
 CANDIDATES = PHYSICAL + ("correlated_noise",)

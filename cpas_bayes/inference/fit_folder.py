@@ -26,7 +26,7 @@ parachute's ``units`` so reports can convert back.
 
 from __future__ import annotations
 
-import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +36,7 @@ import xarray as xr
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.summaries import quantile_summary
 from cpas_bayes.core.files import atomic_path, jsonable, write_json
+from cpas_bayes.core.inputs import name_problem, read_json
 from cpas_bayes.physics.inflation import stage_key
 from cpas_bayes.stats.priors import prior_from_table
 
@@ -51,11 +52,29 @@ def save_datatree(tree, target):
         tree.to_netcdf(tmp, engine="h5netcdf")
 
 
+def _refit(folder):
+    """What rewrites a damaged fit folder."""
+    return (f"re-run 'cpas-bayes fit BUNDLE --out {folder}' (in a campaign: delete {folder} and re-run the "
+            "campaign)")
+
+
 def load_datatree(path):
+    """The DataTree in ``posterior.nc``; an InputError naming the file and what to re-run if it is missing,
+    empty, truncated or not a posterior (no ``posterior`` group with variables)."""
     path = Path(path)
+    fix = _refit(path.parent)
     if not path.is_file():
         raise InputError(path, "", "posterior file not found", "run 'cpas-bayes fit' into this folder first")
-    return xr.open_datatree(path, engine="h5netcdf").load()
+    if path.stat().st_size == 0:
+        raise InputError(path, "", "empty (a fit interrupted while writing it?)", fix)
+    try:
+        tree = xr.open_datatree(path, engine="h5netcdf").load()
+    except Exception as exc:  # noqa: BLE001 - whatever h5py/h5netcdf/xarray say about a damaged file
+        raise InputError(path, "", f"not a readable netCDF posterior ({type(exc).__name__}: {str(exc)[:160]})",
+                         fix) from None
+    if "posterior" not in tree.children or not tree["posterior"].to_dataset().data_vars:
+        raise InputError(path, "group 'posterior'", "missing or without variables", fix)
+    return tree
 
 
 @dataclass(frozen=True)
@@ -102,28 +121,95 @@ class FitRecord:
 
 
 def load_fit(folder) -> FitRecord:
-    """Read a fit folder written by ``cpas-bayes fit``; refuse clearly if it is not one."""
+    """Read a fit folder written by ``cpas-bayes fit``; refuse clearly if it is not one or is damaged."""
     folder = Path(folder)
-    summary_path = folder / SUMMARY_NAME
-    if not summary_path.is_file():
+    summary = read_summary(folder)
+    return _record(folder, summary, load_datatree(folder / POSTERIOR_NAME), folder / SUMMARY_NAME)
+
+
+def read_summary(folder) -> dict:
+    """``summary.json`` of a fit folder, checked for what later steps read of it (test, parachutes with
+    their stages, priors, sampler); an InputError naming the key and what to re-run otherwise."""
+    folder = Path(folder)
+    path = folder / SUMMARY_NAME
+    if not path.exists():
         raise InputError(folder, "", f"no {SUMMARY_NAME}: not a fit folder",
                          "pass folders written by 'cpas-bayes fit BUNDLE --out FOLDER'")
-    try:
-        summary = json.loads(summary_path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise InputError(summary_path, "", f"not valid JSON ({exc})", "rerun the fit to rewrite it") from None
+    fix = _refit(folder)
+    summary = read_json(path, fix, what="fit summary")
+
+    def refuse(where, problem):
+        raise InputError(path, f"key '{where}'", problem, fix)
+
     for key in ("test", "parachutes", "priors"):
         if key not in summary:
-            raise InputError(summary_path, f"key '{key}'", "missing", "rerun the fit with this version of cpas_bayes")
-    return _record(folder, summary, load_datatree(folder / POSTERIOR_NAME), summary_path)
+            refuse(key, "missing")
+    if name_problem(summary["test"]) is not None:
+        refuse("test", f"test name {summary['test']!r:.60} cannot be used: {name_problem(summary['test'])}")
+    chutes = summary["parachutes"]
+    if not isinstance(chutes, dict) or not chutes:
+        refuse("parachutes", "must be a non-empty table of parachutes")
+    for pid, info in chutes.items():
+        where = f"parachutes.{pid}"
+        if name_problem(pid) is not None:
+            refuse(where, f"parachute id cannot be used: {name_problem(pid)}")
+        if not isinstance(info, dict):
+            refuse(where, "must be a table")
+        for key in ("kind", "inflation", "diameter_m", "stages"):
+            if key not in info:
+                refuse(f"{where}.{key}", "missing")
+        if name_problem(info["kind"]) is not None:
+            refuse(f"{where}.kind", f"parachute kind cannot be used: {name_problem(info['kind'])}")
+        if info["inflation"] not in ("finite", "infinite"):
+            refuse(f"{where}.inflation", f"{info['inflation']!r:.40} is not 'finite' or 'infinite'")
+        d = info["diameter_m"]
+        if isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or d <= 0:
+            refuse(f"{where}.diameter_m", f"{d!r:.40} is not a positive number")
+        stages = info["stages"]
+        if not isinstance(stages, list) or not stages:
+            refuse(f"{where}.stages", "must be a non-empty list of stages")
+        for k, st in enumerate(stages):
+            expected = stage_key(k, len(stages))
+            if not isinstance(st, dict) or st.get("key") != expected:
+                refuse(f"{where}.stages[{k}].key", f"must be '{expected}' (stage {k + 1} of {len(stages)})")
+    if not isinstance(summary["priors"], dict) or not summary["priors"]:
+        refuse("priors", "must be a non-empty table of the priors the fit used")
+    sampler = summary.get("sampler", {})
+    seed = sampler.get("seed", 0) if isinstance(sampler, dict) else None
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        refuse("sampler.seed", "must be a table with the fit's whole-number seed")
+    return summary
 
 
 def _record(folder, summary, tree, summary_source):
-    """A :class:`FitRecord` from a summary and a DataTree (draws flattened, priors rebuilt from their tables)."""
+    """A :class:`FitRecord` from a summary and a DataTree (draws flattened, priors rebuilt from their tables).
+
+    For a folder, the posterior must hold numeric draws of one common size for every parameter
+    whose prior the summary lists.
+    """
     post = tree["posterior"].to_dataset()
     draws = {name: np.asarray(post[name].values).reshape(-1) for name in post.data_vars}
-    priors = {name: prior_from_table(table, summary_source, f"priors.{name}")
-              for name, table in summary["priors"].items()}
+    if folder is None:
+        priors = {name: prior_from_table(table, summary_source, f"priors.{name}")
+                  for name, table in summary["priors"].items()}
+        return FitRecord(folder=folder, summary=summary, draws=draws, priors=priors)
+    fix = _refit(folder)
+    try:
+        priors = {name: prior_from_table(table, summary_source, f"priors.{name}")
+                  for name, table in summary["priors"].items()}
+    except InputError as exc:   # the same problem, with what rewrites a fit folder as the fix
+        raise InputError(exc.file, exc.where, exc.problem, fix) from None
+    where = folder / POSTERIOR_NAME
+    sizes = set()
+    for name, values in draws.items():
+        if values.dtype.kind not in "fiu":
+            raise InputError(where, f"variable '{name}'", f"holds {values.dtype} values, not numbers", fix)
+        sizes.add(values.size)
+    if len(sizes) != 1 or 0 in sizes:
+        raise InputError(where, "group 'posterior'", f"variables of different or zero sizes {sorted(sizes)}", fix)
+    missing = [name for name in priors if name not in draws]
+    if missing:
+        raise InputError(where, f"variable '{missing[0]}'", f"missing; {SUMMARY_NAME} lists a prior for it", fix)
     return FitRecord(folder=folder, summary=summary, draws=draws, priors=priors)
 
 

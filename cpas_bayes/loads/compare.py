@@ -63,6 +63,7 @@ from cpas_bayes.population.memo import Memo
 from cpas_bayes.loads.montecarlo import (QUANTILE_LEVELS, ClusterLayout, MonteCarloResult, assemble_inputs,
                                          run_monte_carlo, simulate_runs)
 from cpas_bayes.inference.fit_folder import FitRecord, POSTERIOR_NAME, SUMMARY_NAME
+from cpas_bayes.loads.budget import check_runs
 from cpas_bayes.physics.engine import choose_engine, ensure_compiled
 from cpas_bayes.data.reduction import Reduction, reduce_test
 from cpas_bayes.physics.trajectory import SimulationOptions
@@ -300,6 +301,8 @@ def compare_loads(test: FlightTest, memo: Memo | None = None, fit: FitRecord | N
     if memo is None and fit is None:
         raise InputError(test.label, "options --memo/--fit", "nothing to compare the measurement with",
                          "give a memo (--memo memo.toml), a fit of this test (--fit FITDIR), or both")
+    check_runs(ClusterLayout.from_test(test), runs, results=(memo is not None) + (fit is not None),
+               source="compare_loads", what="load comparison")
     rng = np.random.default_rng() if rng is None else rng
     reduction = reduce_test(test) if reduction is None else reduction
     predictions = {}

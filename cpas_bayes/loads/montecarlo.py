@@ -64,6 +64,10 @@ time (quantiles 1/5/50/95/99 %, mean, sd) and per parachute its own-stage
 peak load, peak time, t_fp and load share at the stage peak; the
 configuration, mode, runtime and runs/s. :mod:`cpas_bayes.outputs.montecarlo`
 writes them (``cpas-bayes montecarlo``).
+
+Memory: every run's inputs and outputs are kept (the quantiles, the figures
+and ``runs.csv`` need them all); :func:`run_monte_carlo` refuses, before
+drawing anything, a run count beyond :mod:`cpas_bayes.loads.budget`'s limits.
 """
 
 from __future__ import annotations
@@ -71,7 +75,7 @@ from __future__ import annotations
 import math
 import sys
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +85,7 @@ from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.summaries import quantile_summary
 from cpas_bayes.core.units import UnitSystem
 from cpas_bayes.data.bundle import FlightTest
+from cpas_bayes.loads.budget import check_runs
 from cpas_bayes.physics.engine import RunOutputs, choose_engine, ensure_compiled, real_stages, simulate_peaks
 from cpas_bayes.physics.inflation import stage_key, stage_tag
 from cpas_bayes.physics.trajectory import ClusterParameters, SimulationOptions, VehicleProperties, VehicleState0
@@ -426,10 +431,15 @@ class MonteCarloResult:
         """Run ``index``'s parameters as a batch-of-one ClusterParameters (to re-fly it with simulate)."""
         return self.inputs.take(slice(index, index + 1)).cluster(self.layout)
 
-    def frame(self) -> pd.DataFrame:
-        """One row per run in the like-test's units (columns: module notes, "Outputs")."""
-        lay, u, o, x = self.layout, self.layout.units, self.outputs, self.inputs
-        cols = {"run": np.arange(self.runs)}
+    def frame(self, rows=None) -> pd.DataFrame:
+        """One row per run in the like-test's units (columns: module notes, "Outputs"); only the runs of
+        slice ``rows`` if given (runs.csv is written a slice at a time, so the table never holds every run)."""
+        lay, u = self.layout, self.layout.units
+        rows = slice(None) if rows is None else rows
+        per_run = {n: getattr(self.outputs, n)[rows] for n in self.outputs.__dataclass_fields__
+                   if n not in ("history_time", "history")}
+        o, x = replace(self.outputs, **per_run), self.inputs.take(rows)
+        cols = {"run": np.arange(self.runs)[rows]}
         share = o.stage_share
         for k in range(lay.n_stages):
             tag = lay.stage_tag(k)
@@ -521,6 +531,7 @@ def run_monte_carlo(memo: Memo, like: FlightTest, runs: int, rng: np.random.Gene
     :func:`simulate_runs`). The runtime covers drawing and simulating.
     """
     layout = ClusterLayout.from_test(like)
+    check_runs(layout, runs)
     engine_used = choose_engine(engine, options)
     if engine_used == "compiled":
         ensure_compiled()

@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import matplotlib.pyplot as plt
 
-from cpas_bayes.core.files import jsonable, write_csv, write_json
+from cpas_bayes.core.files import atomic_path, jsonable, write_json
 from cpas_bayes.core.ownership import claim_folder
+from cpas_bayes.loads.budget import TABLE_CHUNK
 from cpas_bayes.loads.fill_time import FillTimeComparison
 from cpas_bayes.loads.montecarlo import MonteCarloResult
 from cpas_bayes.outputs.figures import save_figure, write_json_and_figure
@@ -33,16 +34,19 @@ def write_monte_carlo(result: MonteCarloResult, out, memo: Memo | None = None, e
 
     ``memo`` adds the pooled tests' t_fp ranges to the fill-time figure;
     ``extra`` entries are added to summary.json (seed, command line).
-    Everything is built before anything is written.
+    The summary and figures are built before anything is written; runs.csv
+    (written first) is built and written ``TABLE_CHUNK`` runs at a time.
     """
     out = claim_folder(out)
-    table = result.frame()
     summary = result.summary()
     summary.update(extra or {})
     figures = {"peak_loads.png": plot_peak_loads(result), "fill_times.png": plot_fill_times(result, memo)}
     paths = {"csv": out / "runs.csv", "json": out / "summary.json"}
     try:
-        write_csv(paths["csv"], table, float_format="%.8g")
+        with atomic_path(paths["csv"]) as tmp:   # TABLE_CHUNK runs at a time: the table never holds them all
+            for first in range(0, max(result.runs, 1), TABLE_CHUNK):
+                result.frame(slice(first, first + TABLE_CHUNK)).to_csv(
+                    tmp, mode="a" if first else "w", header=not first, index=False, float_format="%.8g")
         write_json(paths["json"], jsonable(summary))
         for name, fig in figures.items():
             paths[name] = out / name

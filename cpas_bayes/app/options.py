@@ -1,0 +1,122 @@
+"""The command line's option types and checks: every option is refused before any work starts.
+
+Numbers are click ranges (a value outside is a usage error naming the
+option, exit status 2); paths and addresses are checked by callbacks while
+the command line is parsed, so a refused option leaves no output behind.
+The limits, and why:
+
+=================  ==========================  ==========================================================
+option             allowed                     why
+=================  ==========================  ==========================================================
+``--seed``         0 … 2⁶³ − 1                 numpy seeds are non-negative; TOML integers are 64-bit
+``--workers``      1 … ``MAX_LOCAL_WORKERS``   twice the cores (at least 4): the tasks are compute-bound,
+                                               and each process holds its own libraries and data
+``--ensembles``    1 … ``MAX_ENSEMBLES`` (16)  R-hat needs 2 or more; beyond 16 only memory grows
+``--runs``         1 … 10,000,000, and what    :mod:`cpas_bayes.loads.budget`: every run is kept in
+                   fits in half the memory     memory; checked before anything is drawn
+``--batch``        1 … 100,000                 runs simulated at once
+``--magnitude``    finite, within the effect's :data:`cpas_bayes.data.synth.EFFECT_MAGNITUDE_LIMITS`
+                   limits
+``--scheduler``    ``local`` or an address     the scheduler must answer within 5 s
+                   that answers
+``--priors``       an existing TOML file       read within :func:`cpas_bayes.core.inputs.read_toml`'s limits
+``--out``          a folder, or a path where   never a file; new, empty or written by cpas-bayes
+                   one can be made
+=================  ==========================  ==========================================================
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.core.executor import MAX_LOCAL_WORKERS, SCHEDULER_FIX, scheduler_problem
+from cpas_bayes.core.inputs import read_toml
+from cpas_bayes.core.ownership import OutputError, check_output
+from cpas_bayes.loads.budget import MAX_BATCH, MAX_RUNS
+
+MAX_SEED = 2**63 - 1
+MAX_ENSEMBLES = 16
+
+SEED = click.IntRange(0, MAX_SEED)
+WORKERS = click.IntRange(1, MAX_LOCAL_WORKERS)
+ENSEMBLES = click.IntRange(1, MAX_ENSEMBLES)
+RUNS = click.IntRange(1, MAX_RUNS)
+BATCH = click.IntRange(1, MAX_BATCH)
+
+
+def check_scheduler(ctx, param, value):
+    """``--scheduler``: ``local``, or a Dask scheduler address that answers within the connect timeout."""
+    problem = scheduler_problem(value)
+    if problem:
+        raise click.BadParameter(f"{problem}. Fix: {SCHEDULER_FIX}", ctx=ctx, param=param)
+    return value
+
+
+def check_out(ctx, param, value):
+    """``--out``: the output-folder rule of :mod:`cpas_bayes.core.ownership`, checked while the line is parsed."""
+    if value is None:
+        return value
+    try:
+        check_output(value)
+    except OutputError as exc:
+        raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+    return value
+
+
+def check_toml_file(ctx, param, value):
+    """``--priors``: an existing file that reads as TOML within the limits (its tables are checked by the fit)."""
+    if value is None:
+        return value
+    try:
+        read_toml(value)
+    except InputError as exc:
+        raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+    return value
+
+
+def out_option(help_text, **kwargs):
+    """``--out`` with its check."""
+    return click.option("--out", type=click.Path(path_type=Path), callback=check_out, help=help_text, **kwargs)
+
+
+def seed_option(help_text):
+    return click.option("--seed", type=SEED, default=0, show_default=True, help=help_text)
+
+
+def priors_option():
+    return click.option("--priors", type=click.Path(path_type=Path), default=None, callback=check_toml_file,
+                        help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")
+
+
+# ---------------------------------------------------------------------------
+# the campaign TOML's values: field -> (type, low, high); None: no bound. Checked by load_config.
+
+MAX_STEPS = 100_000          # a fit's steps per ensemble: 5× the default; chains stay ≤ ~100 MB per ensemble
+CONFIG_LIMITS = {
+    "seed": (int, 0, MAX_SEED),
+    "workers": (int, 1, MAX_LOCAL_WORKERS),
+    "fit_ensembles": (int, 1, MAX_ENSEMBLES),
+    "fit_max_steps": (int, 100, MAX_STEPS),
+    "fit_check_every": (int, 10, 10_000),
+    "fit_tau_factor": (float, 0.0, None),
+    "montecarlo_runs": (int, 1, MAX_RUNS),
+    "compare_runs": (int, 1, MAX_RUNS),
+    "pool_draws": (int, 100, 1_000_000),
+}
+
+
+def value_problem(value, kind, low=None, high=None):
+    """Why ``value`` is not a ``kind`` (int or float) in [low, high] (floats: finite and above ``low``), or None."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and not isinstance(value, int)):
+        return f"{value!r:.60} is not {'a whole number' if kind is int else 'a number'}"
+    if kind is float:
+        if value != value or value in (float("inf"), float("-inf")):
+            return f"{value} is not a finite number"
+        if low is not None and not value > low:
+            return f"{value:g} must be more than {low:g}"
+    elif (low is not None and value < low) or (high is not None and value > high):
+        return f"{value:,} is outside {low:,} … {high:,}"
+    return None
