@@ -5,7 +5,8 @@ print where the outputs are. Bad input ends with one message naming the file,
 the place and the fix (exit status 2); an unexpected fault ends with a short
 message (exit status 1) and the traceback only when ``CPAS_BAYES_DEBUG=1``.
 
-Every ``--out`` is checked before any work (:func:`cpas_bayes.core.ownership.check_output`:
+Every ``--out`` is checked while the command line is parsed (``app.options.out_option``, the rule of
+:func:`cpas_bayes.core.ownership.check_output`:
 new, empty, or written by cpas-bayes); an output that cannot be written (no
 permission, disk full, a name too long) ends like bad input, naming the path.
 SIGTERM is handled like Ctrl-C: temporary files removed, workers stopped,
@@ -26,7 +27,7 @@ import click
 from cpas_bayes import __version__
 from cpas_bayes.data.bundle import KINDS, read_bundle, summary
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.ownership import check_output, output_error
+from cpas_bayes.core.ownership import output_error
 from cpas_bayes.app.campaign_config import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
 from cpas_bayes.app.options import (BATCH, ENSEMBLES, RUNS, SEED, WORKERS, check_scheduler, out_option,
                                     priors_option, seed_option)
@@ -128,7 +129,6 @@ def demo(out):
     """Run the main job on the bundled data and write its report."""
     from cpas_bayes.app.demo import run_demo
 
-    check_output(out)
     index = run_demo(out, echo=click.echo)
     click.echo(f"report: {index}")
 
@@ -145,7 +145,6 @@ def reduce_command(bundle, out, scale, windows):
     from cpas_bayes.data.reduction import parse_window, reduce_test
     from cpas_bayes.outputs.reduction import write_reduction
 
-    check_output(out)
     test = read_bundle(bundle)
     chosen = [parse_window(w, test.label) for w in windows] or None
     red = reduce_test(test, scale=scale, windows=chosen)
@@ -196,7 +195,6 @@ def synth_command(scenario, effect, magnitude, seed, out):
         raise click.BadParameter("a magnitude needs an effect other than 'none'", param_hint="--magnitude")
     if magnitude is not None and magnitude_problem(effect, magnitude):
         raise click.BadParameter(magnitude_problem(effect, magnitude), param_hint="--magnitude")
-    check_output(out)
     try:
         folder = write_synthetic(scenario, effect, seed, out, magnitude=magnitude)
     except ValueError as exc:  # an impossible effect size, said plainly
@@ -225,7 +223,6 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
-    check_output(out)  # an earlier fit's folder is the package's: the fit resumes from its checkpoints
     test = read_bundle(bundle)
     _check_priors([p.kind for p in test.parachutes], priors)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
@@ -272,7 +269,6 @@ def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, comp
     from cpas_bayes.loads.montecarlo import ClusterLayout, run_monte_carlo
     from cpas_bayes.outputs.montecarlo import write_fill_time_comparison, write_monte_carlo
 
-    check_output(out)
     memo = load_memo(memo_path)
     test = read_bundle(like)
     check_runs(ClusterLayout.from_test(test), runs, results=3 if compare_np else 1, table=True,
@@ -328,7 +324,6 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
 
     if memo_path is None and fit_path is None:
         raise click.UsageError("give --memo, --fit or both")
-    check_output(out)
     test = read_bundle(bundle)
     memo = load_memo(memo_path) if memo_path is not None else None
     fit = load_fit(fit_path) if fit_path is not None else None
@@ -364,7 +359,6 @@ def pool_command(fitdirs, out, seed):
     from cpas_bayes.population.pool import pool_folders
     from cpas_bayes.population.reweighting import PoolWarning
 
-    check_output(out)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoolWarning)
         result = pool_folders(fitdirs, seed=seed)
@@ -405,7 +399,6 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
     from cpas_bayes.core.inputs import did_you_mean
     from cpas_bayes.stats.model_terms import EXTENSIONS
 
-    check_output(out)
     names = tuple(c.strip() for c in candidates.split(",") if c.strip())
     unknown = [n for n in names if n not in EXTENSIONS]
     if unknown or not names:
@@ -454,7 +447,6 @@ def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode
     from cpas_bayes.app.campaign import run_campaign
     from cpas_bayes.app.campaign_config import CampaignConfig, load_config
 
-    check_output(out)
     config = load_config(config_path) if config_path else CampaignConfig()
     if workers is not None:
         config = replace(config, workers=workers)
