@@ -34,7 +34,7 @@ import click
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.executor import MAX_LOCAL_WORKERS, SCHEDULER_FIX, scheduler_problem
 from cpas_bayes.core.inputs import read_toml
-from cpas_bayes.core.ownership import OutputError, check_output
+from cpas_bayes.core.ownership import check_output
 from cpas_bayes.loads.budget import MAX_BATCH, MAX_RUNS
 
 MAX_SEED = 2**63 - 1
@@ -55,26 +55,25 @@ def check_scheduler(ctx, param, value):
     return value
 
 
-def check_out(ctx, param, value):
-    """``--out``: the output-folder rule of :mod:`cpas_bayes.core.ownership`, checked while the line is parsed."""
+def _refusal_as_bad_parameter(check, ctx, param, value):
+    """Run ``check(value)``; its refusal becomes click's option error (exit 2, the option named)."""
     if value is None:
         return value
     try:
-        check_output(value)
-    except OutputError as exc:
+        check(value)
+    except InputError as exc:
         raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
     return value
+
+
+def check_out(ctx, param, value):
+    """``--out``: the output-folder rule of :mod:`cpas_bayes.core.ownership`, checked while the line is parsed."""
+    return _refusal_as_bad_parameter(check_output, ctx, param, value)
 
 
 def check_toml_file(ctx, param, value):
     """``--priors``: an existing file that reads as TOML within the limits (its tables are checked by the fit)."""
-    if value is None:
-        return value
-    try:
-        read_toml(value)
-    except InputError as exc:
-        raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
-    return value
+    return _refusal_as_bad_parameter(read_toml, ctx, param, value)
 
 
 def out_option(help_text, **kwargs):

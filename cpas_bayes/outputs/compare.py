@@ -8,18 +8,12 @@ non-finite numbers become null) and ``compare.png``
 
 from __future__ import annotations
 
-from cpas_bayes.core.files import jsonable
-from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.loads.compare import LoadComparison
-from cpas_bayes.outputs.figures import write_json_and_figure
+from cpas_bayes.outputs.figures import write_document
 from cpas_bayes.outputs.plots.montecarlo import plot_load_comparison
 
 
 def write_comparison(comparison: LoadComparison, out, extra=None):
     """Write compare.json and compare.png into ``out`` (atomically); return their paths."""
-    out = claim_folder(out)
-    doc = comparison.to_json()
-    doc.update(extra or {})
-    paths = {"json": out / "compare.json", "png": out / "compare.png"}
-    write_json_and_figure(paths["json"], jsonable(doc), paths["png"], plot_load_comparison(comparison))
-    return paths
+    return write_document(out, comparison.to_json(), extra, "compare.json", "compare.png",
+                          plot_load_comparison(comparison))

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from cpas_bayes.core.files import atomic_path, write_json
+from cpas_bayes.core.files import atomic_path, jsonable, write_json
+from cpas_bayes.core.ownership import claim_folder
 
 
 def save_figure(fig, target, **kwargs):
@@ -23,3 +24,19 @@ def write_json_and_figure(json_target, doc, figure_target, fig, dpi=110):
         save_figure(fig, figure_target, dpi=dpi)
     finally:
         plt.close(fig)
+
+
+def write_document(out, doc, extra, json_name, figure_name, fig):
+    """``doc`` plus the caller's ``extra`` entries as JSON and ``fig`` as a figure, into output folder ``out``.
+
+    Returns ``{"json": path, "png": path}``.
+    """
+    try:
+        out = claim_folder(out)
+    except BaseException:
+        plt.close(fig)  # drawn by the caller, never saved
+        raise
+    doc = {**doc, **(extra or {})}
+    paths = {"json": out / json_name, "png": out / figure_name}
+    write_json_and_figure(paths["json"], jsonable(doc), paths["png"], fig)
+    return paths

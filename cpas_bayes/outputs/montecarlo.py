@@ -24,7 +24,7 @@ from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.loads.budget import TABLE_CHUNK
 from cpas_bayes.loads.fill_time import FillTimeComparison
 from cpas_bayes.loads.montecarlo import MonteCarloResult
-from cpas_bayes.outputs.figures import save_figure, write_json_and_figure
+from cpas_bayes.outputs.figures import save_figure, write_document
 from cpas_bayes.outputs.plots.montecarlo import plot_fill_time_np_vs_n, plot_fill_times, plot_peak_loads
 from cpas_bayes.population.memo import Memo
 
@@ -59,9 +59,5 @@ def write_monte_carlo(result: MonteCarloResult, out, memo: Memo | None = None, e
 
 def write_fill_time_comparison(comparison: FillTimeComparison, out, extra=None):
     """Write np_vs_n.json and fill_time_np_vs_n.png into ``out`` (atomically); return their paths."""
-    out = claim_folder(out)
-    doc = comparison.to_json()
-    doc.update(extra or {})
-    paths = {"json": out / "np_vs_n.json", "png": out / "fill_time_np_vs_n.png"}
-    write_json_and_figure(paths["json"], jsonable(doc), paths["png"], plot_fill_time_np_vs_n(comparison))
-    return paths
+    return write_document(out, comparison.to_json(), extra, "np_vs_n.json", "fill_time_np_vs_n.png",
+                          plot_fill_time_np_vs_n(comparison))
