@@ -1,19 +1,25 @@
-"""The models a diagnosis compares: the baseline, and the baseline plus one candidate term.
+"""The models a diagnosis compares: the baseline, the generic discrepancy, and named terms.
 
-:func:`fit_candidate` samples one of them and computes its PSIS-LOO (step 2 of
-the procedure in :mod:`cpas_bayes.inference.diagnose`): an extended fit starts
-its MAP search from the baseline's MAP with the term at the values of
-``Extension.start_points``; for canopy breathing the frequency is first read
-off the baseline's residuals (:func:`breathing_frequency_guess`). Mode
-``screen`` first looks at each term's MAP only (:func:`screen_candidate`).
+A model is named by its label: ``baseline``, or the terms it adds joined by
+``+`` (``discrepancy``, ``added_mass+discrepancy``,
+``added_mass+sensor_lag``; :func:`model_label`). :func:`fit_candidate`
+samples one and computes its PSIS-LOO (step 2 of the procedure in
+:mod:`cpas_bayes.inference.diagnose`): it starts its MAP search from a
+*reference* fit's MAP (the model it extends or trims) with each new term at
+the values of ``Extension.start_points``; for canopy breathing the frequency
+is first read off the baseline's residuals (:func:`breathing_frequency_guess`).
+:func:`screen_candidate` looks at a model's MAP only. :func:`fit_model_form`
+fits the baseline in another form (composite cluster, the other decay).
 :class:`DiagnoseOptions` holds the knobs of a diagnosis, among them the
 thresholds of the naming rule (:mod:`cpas_bayes.inference.diagnosis_rule`).
 """
 
 from __future__ import annotations
 
+import itertools
 import time as _time
 import warnings
+import zlib
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -21,10 +27,12 @@ import numpy as np
 from cpas_bayes.inference.fit import Fit, SamplerOptions, fit_model, prepare_model
 
 from cpas_bayes.inference.start import find_map
+from cpas_bayes.stats.discrepancy import Discrepancy
 from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
 
-CANDIDATES = PHYSICAL + ("correlated_noise",)
+CANDIDATES = PHYSICAL
 BASELINE = "baseline"
+DISCREPANCY = "discrepancy"
 
 # Short fits: the comparison needs ~1,000 nearly independent draws per model,
 # not a memo-grade posterior. Two ensembles still give a nested R-hat.
@@ -49,6 +57,10 @@ class DiagnoseOptions:
     decay: str = "linear"
     mode: str = "full"               # "full": sample every candidate; "screen": MAP screen first
     screen_gain: float = 5.0         # screen: a physical term is sampled if its MAP gain exceeds this
+    max_causes: int = 3              # forward selection stops after this many named terms
+    min_share: float = 0.5           # named terms must explain this share of the discrepancy's gain
+    moved_sd: float = 3.0            # parameters moving more than this (baseline sds) are flagged in words
+    model_forms: bool = True         # also compare composite vs individual cluster and the decay forms
 
 
 @dataclass
@@ -118,11 +130,50 @@ def breathing_frequency_guess(model, theta, band=BREATHING_BAND_HZ):
     return float(freqs[int(np.argmax(power))])
 
 
-def extension_starts(model, baseline_model, baseline_map, extension):
-    """MAP starting points of an extended model: the baseline's MAP plus each of the term's start points."""
-    base = dict(zip(baseline_model.names, baseline_map))
+def model_label(terms, discrepancy=False):
+    """The label of the baseline plus ``terms`` (in catalogue order) and, last, the discrepancy."""
+    names = [t for t in PHYSICAL if t in terms] + [t for t in terms if t not in PHYSICAL and t != DISCREPANCY]
+    names += [DISCREPANCY] if discrepancy else []
+    return "+".join(names) if names else BASELINE
+
+
+def label_terms(label):
+    """(physical and other terms, with discrepancy) of a model label."""
+    if label == BASELINE:
+        return (), False
+    parts = tuple(label.split("+"))
+    return tuple(p for p in parts if p != DISCREPANCY), DISCREPANCY in parts
+
+
+def candidate_seed_index(label):
+    """A fixed index per model label, so a model's seed does not depend on the order of the fits."""
+    return 1 + zlib.crc32(label.encode()) % 100_000
+
+
+def _model_for(label, test, reduction, options, baseline, **model_options):
+    terms, with_discrepancy = label_terms(label)
+    extensions = []
+    for name in terms:
+        if name == "canopy_breathing" and baseline is not None:
+            guess = breathing_frequency_guess(baseline.fit.model, baseline.fit.sampling.theta_map)
+            extensions.append(make_extension(name, frequency_guess=guess))
+        else:
+            extensions.append(make_extension(name))
+    if with_discrepancy:
+        extensions.append(Discrepancy())
+    return prepare_model(test, reduction, options.priors, model_options.pop("decay", options.decay),
+                         extensions=extensions, **model_options)
+
+
+def start_guesses(model, reference):
+    """MAP starts of ``model`` from a fitted ``reference``: its MAP by parameter name, each term the
+    reference lacks at each of its ``start_points`` (all combinations), the rest at prior medians."""
+    base = dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))
+    known = {e.name for e in reference.fit.model.extensions}
+    new = [e for e in model.extensions if e.name not in known]
     rows = []
-    for point in extension.start_points(model):
+    for combo in itertools.product(*[e.start_points(model) for e in new]) if new else [()]:
+        point = {k: v for d in combo for k, v in d.items()}
         theta = np.array([p.prior.ppf(0.5) for p in model.parameters], dtype=float)
         for i, name in enumerate(model.names):
             if name in base:
@@ -133,35 +184,45 @@ def extension_starts(model, baseline_model, baseline_map, extension):
     return rows
 
 
-def _extended_model(name, test, reduction, options, baseline):
-    if name == "canopy_breathing":
-        guess = breathing_frequency_guess(baseline.fit.model, baseline.fit.sampling.theta_map)
-        extension = make_extension(name, frequency_guess=guess)
-    else:
-        extension = make_extension(name)
-    model = prepare_model(test, reduction, options.priors, options.decay, extensions=[extension])
-    return model, extension
+def fit_candidate(label, test, reduction, options: DiagnoseOptions, reference=None, baseline=None, echo=None,
+                  index=None, guesses=None, executor=None):
+    """Fit the model ``label`` (``"baseline"``, ``"discrepancy"``, ``"added_mass+discrepancy"``, ...).
 
-
-def fit_candidate(name, test, reduction, options: DiagnoseOptions, baseline=None, echo=None, index=0, guesses=None,
-                  executor=None):
-    """Fit the baseline (``name == "baseline"``) or the baseline plus one extension.
-
-    ``guesses`` replace the extension's MAP starts (e.g. the screen's MAP);
-    ``executor`` runs the fit's ensembles.
+    A model other than the baseline starts from ``reference``'s MAP (default
+    ``baseline``) with its new terms at their start points; ``guesses``
+    replace those starts (e.g. a screen's MAP); ``executor`` runs the fit's
+    ensembles.
     """
     started = _time.perf_counter()
+    index = candidate_seed_index(label) if index is None else index
     sampler = replace(options.sampler, seed=int(np.random.default_rng([options.seed, index]).integers(2**31 - 1)))
-    if name == BASELINE:
+    if label == BASELINE:
         model = prepare_model(test, reduction, options.priors, options.decay)
         fit = fit_model(model, sampler, echo=echo, executor=executor)
     else:
-        model, extension = _extended_model(name, test, reduction, options, baseline)
+        model = _model_for(label, test, reduction, options, baseline)
         if guesses is None:
-            guesses = extension_starts(model, baseline.fit.model, baseline.fit.sampling.theta_map, extension)
+            guesses = start_guesses(model, reference if reference is not None else baseline)
         fit = fit_model(model, replace(sampler, map_starts=max(len(guesses), sampler.map_starts)),
                         echo=echo, guesses=guesses, executor=executor)
-    return CandidateFit(name=name, fit=fit, loo=psis_loo(fit.tree), seconds=_time.perf_counter() - started)
+    return CandidateFit(name=label, fit=fit, loo=psis_loo(fit.tree), seconds=_time.perf_counter() - started)
+
+
+MODEL_FORMS = {"composite": {"cluster": "composite"}, "exponential": {"decay": "exponential"},
+               "linear": {"decay": "linear"}}
+
+
+def fit_model_form(form, test, reduction, options: DiagnoseOptions, echo=None, executor=None):
+    """The baseline in another form: ``composite`` (one set of inflation parameters for the cluster's
+    like canopies, as a composite model) or a decay shape (``linear``, ``exponential``)."""
+    started = _time.perf_counter()
+    index = candidate_seed_index(f"form:{form}")
+    sampler = replace(options.sampler, seed=int(np.random.default_rng([options.seed, index]).integers(2**31 - 1)))
+    kwargs = dict(MODEL_FORMS[form])
+    decay = kwargs.pop("decay", options.decay)
+    model = prepare_model(test, reduction, options.priors, decay, **kwargs)
+    fit = fit_model(model, sampler, echo=echo, executor=executor)
+    return CandidateFit(name=form, fit=fit, loo=psis_loo(fit.tree), seconds=_time.perf_counter() - started)
 
 
 def polish_baseline_map(baseline: CandidateFit, options: DiagnoseOptions) -> CandidateFit:
@@ -176,9 +237,10 @@ def polish_baseline_map(baseline: CandidateFit, options: DiagnoseOptions) -> Can
     return baseline
 
 
-def screen_candidate(name, test, reduction, options: DiagnoseOptions, baseline: CandidateFit, index=0):
-    """MAP of the baseline plus ``name`` from the baseline's MAP; passes when the log posterior rises by
-    more than ``options.screen_gain`` with the term's size beyond its practical floor.
+def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference: CandidateFit, baseline=None,
+                     term=None):
+    """MAP of model ``label`` from ``reference``'s MAP; passes when the log posterior rises by more
+    than ``options.screen_gain`` with ``term``'s size beyond its practical floor.
 
     The MAP gain bounds the elpd gain from above up to the width terms (a term
     that cannot raise the best fit cannot predict held-out bins better), so a
@@ -186,18 +248,19 @@ def screen_candidate(name, test, reduction, options: DiagnoseOptions, baseline: 
     ``min_gain`` > ``screen_gain``.
     """
     started = _time.perf_counter()
-    model, extension = _extended_model(name, test, reduction, options, baseline)
-    guesses = extension_starts(model, baseline.fit.model, baseline.fit.sampling.theta_map, extension)
-    rng = np.random.default_rng([options.seed, index, 3])
+    model = _model_for(label, test, reduction, options, baseline if baseline is not None else reference)
+    guesses = start_guesses(model, reference)
+    rng = np.random.default_rng([options.seed, candidate_seed_index(label), 3])
     theta, log_post = find_map(model, rng, max(len(guesses), options.sampler.map_starts), guesses)
-    gain = float(log_post - baseline.fit.sampling.log_post_map)
+    gain = float(log_post - reference.fit.sampling.log_post_map)
     size = None
     passed = gain > options.screen_gain
-    if extension.practical_floor is not None:
-        param, floor = extension.practical_floor
+    floor = make_extension(term).practical_floor if term is not None else None
+    if floor is not None:
+        param, minimum = floor
         size = float(theta[model.index[param]])
-        passed = passed and abs(size) >= floor
-    return ScreenResult(name=name, map_gain=gain, size=size, passed=bool(passed), theta_map=theta,
+        passed = passed and abs(size) >= minimum
+    return ScreenResult(name=term or label, map_gain=gain, size=size, passed=bool(passed), theta_map=theta,
                         seconds=_time.perf_counter() - started)
 
 
@@ -206,12 +269,14 @@ def baseline_from_fit(fit: Fit) -> CandidateFit:
     return CandidateFit(name=BASELINE, fit=fit, loo=psis_loo(fit.tree), seconds=0.0)
 
 
-def extension_parameters(candidate: CandidateFit):
-    """Posterior mean, sd and 90 % interval of the term's own parameters."""
+def extension_parameters(candidate: CandidateFit, terms=None):
+    """Posterior mean, sd and 90 % interval of the parameters of the model's terms (all of the
+    label's terms by default; the discrepancy's scale included when it is one of them)."""
     model, post = candidate.fit.model, candidate.fit.tree["posterior"]
+    groups = set(terms) if terms is not None else set(candidate.name.split("+"))
     out = {}
     for p in model.parameters:
-        if p.group != candidate.name:
+        if p.group not in groups:
             continue
         x = np.asarray(post[p.name].values, float).ravel()
         q05, q50, q95 = np.quantile(x, (0.05, 0.5, 0.95))

@@ -1,4 +1,4 @@
-"""Find what the baseline simulation gets wrong, name the cause, measure the gain.
+"""Find what the baseline simulation gets wrong, name the causes, measure the gain.
 
 Procedure (``diagnose_test``)
 -----------------------------
@@ -7,33 +7,26 @@ Procedure (``diagnose_test``)
    standardised residuals per channel and flight phase with lag-1 ACF and
    Ljung–Box, the error multipliers, PPC p-values of the physical statistics,
    LOO-PIT and the bins where Pareto k is high.
-2. **Extend.** Fit the baseline plus each candidate term of
-   :mod:`cpas_bayes.stats.model_terms` (one at a time, the same model object with one
-   hook filled; :mod:`cpas_bayes.inference.candidate_fits`). Each extended fit starts its MAP search from the baseline's
-   MAP with the term at the values of ``Extension.start_points`` — for canopy
-   breathing the frequency is first read off the baseline's residuals (the
-   Lomb–Scargle peak in the prior's band).
-3. **Compare.** PSIS-LOO per time bin on the joint log-likelihood of all
-   channels of the bin (``log_likelihood["total"]``). For ``correlated_noise``
-   the pointwise term is the AR-conditional log p(y_t | y_t−1, θ) (its sum is
-   the joint likelihood, so the elpd values are on one scale). The table is
-   ``arviz.compare``'s; the elpd difference of each candidate against the
-   baseline and its standard error are computed from the paired pointwise
-   elpd values, se = √(N·Var(Δelpd_i)).
-4. **Name** (the rule, :func:`~cpas_bayes.inference.diagnosis_rule.name_cause`,
-   stated in full with the reasons for its thresholds in
-   :mod:`cpas_bayes.inference.diagnosis_rule`): the physical candidate with the
-   largest elpd gain over the baseline is named when the gain exceeds
-   ``min_gain`` (10 log units) and ``min_gain_se`` (2) standard errors, it
-   beats ``correlated_noise``, its fitted size is beyond the term's practical
-   floor, and it leads clearly any runner-up that also gains more than
-   ``min_gain``. Otherwise the cause is ``none`` (and the report says why).
-5. **Gain.** Named extension against the baseline: elpd gain ± se, RMSE of
-   each channel, 90 %-band coverage of the data, residual lag-1 ACF, error
-   multipliers, and the predicted peak load and its time against the measured
-   ones. The parameters that moved when the term was added (posterior means
-   shifted by more than one baseline sd) are listed for every candidate:
-   the identifiability evidence.
+2. **Measure the misfit.** Fit the baseline plus the generic discrepancy
+   (:mod:`cpas_bayes.stats.discrepancy`): its elpd gain says how much
+   structure there is to explain, its fitted shape where (channel, phase, time).
+3. **Name, forward.** Fit named + T + discrepancy for each catalogued term T
+   that applies to the test's channels (:mod:`cpas_bayes.stats.model_terms`)
+   and judge T against named + discrepancy
+   (:mod:`cpas_bayes.inference.diagnosis_rule`); name the best passing term,
+   add it to the reference and try the others again (screened by their MAP
+   gain first), until none passes.
+4. **Unexplained?** Fit the named terms without the discrepancy: the
+   discrepancy's gain over them is what is left; ``unexplained`` joins the
+   causes when that remainder is significant and the named terms explain less
+   than half of the discrepancy's gain — or when nothing was named and the
+   baseline fails its own adequacy checks. ``none`` needs both: nothing named
+   and an adequate baseline.
+5. **Gain and model form.** The named terms against the baseline: elpd gain ±
+   se, RMSE of each channel, 90 %-band coverage, residual lag-1 ACF, error
+   multipliers, peak loads; the parameters that moved (> 1 sd listed, > 3 sd
+   said in words). The seed's model-form arguments by ΔELPD: individual vs
+   composite cluster model, linear vs exponential decay.
 """
 
 from __future__ import annotations
@@ -44,14 +37,17 @@ import numpy as np
 import pandas as pd
 
 from cpas_bayes.data.reduction import reduce_test
-from cpas_bayes.inference.candidate_fits import (BASELINE, CandidateFit, DiagnoseOptions, baseline_from_fit,
-                                                 fit_candidate, polish_baseline_map, screen_candidate)
+from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, CandidateFit, DiagnoseOptions,
+                                                 baseline_from_fit, fit_candidate, fit_model_form, model_label,
+                                                 polish_baseline_map, screen_candidate)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
-from cpas_bayes.inference.diagnosis_rule import compare_table, name_cause, versus_baseline
+from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_term, compare_table,
+                                                 paired_difference, passes, unexplained_share, versus_baseline)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
-from cpas_bayes.inference.residuals import residuals
-from cpas_bayes.stats.model_terms import PHYSICAL
+from cpas_bayes.inference.residuals import channel_phases, residuals
+from cpas_bayes.stats.discrepancy import discrepancy_shape
+from cpas_bayes.stats.model_terms import PHYSICAL, applies
 
 BAND = 0.90                 # data coverage band of the gain table
 
@@ -62,17 +58,32 @@ class Diagnosis:
 
     test: str
     baseline: CandidateFit
-    candidates: dict                 # name -> CandidateFit
+    candidates: dict                 # model label -> CandidateFit (every model fitted)
     comparison: pd.DataFrame         # arviz.compare table
-    versus_baseline: pd.DataFrame    # name, elpd_diff, elpd_diff_se, ...
-    cause: str
+    versus_baseline: pd.DataFrame    # name, elpd_diff, elpd_diff_se, ... (every model against the baseline)
+    cause: str                       # the first of ``causes``, or "none"
     reasons: list
     evidence: dict
     gain: dict
     moved: dict
     checks: object                   # the baseline's predictive_checks.FitChecks
-    screen: dict = field(default_factory=dict)   # name -> ScreenResult (mode "screen")
+    screen: dict = field(default_factory=dict)   # term -> ScreenResult of the first round (mode "screen")
     options: DiagnoseOptions = field(default_factory=DiagnoseOptions)
+    causes: list = field(default_factory=list)   # named terms in order, then "unexplained" if so
+    rounds: list = field(default_factory=list)   # forward selection: [{named, reference, checks, chosen, reasons}]
+    unexplained: dict | None = None  # elpd_gain, elpd_gain_se, share_explained, where
+    discrepancy: dict = field(default_factory=dict)   # gain over the baseline, shape (C, N) mean/sd, channels
+    adequacy: dict = field(default_factory=dict)      # adequate, failures
+    model_forms: list = field(default_factory=list)   # [{comparison, better, other, elpd_diff, elpd_diff_se}]
+    named_fit: CandidateFit | None = None             # the named terms without the discrepancy
+    warnings: list = field(default_factory=list)
+
+    @property
+    def verdict(self):
+        """``named``, ``unexplained`` or ``none``."""
+        if any(c != "unexplained" for c in self.causes):
+            return "named"
+        return "unexplained" if self.causes else "none"
 
 
 # ---------------------------------------------------------------------------
@@ -80,13 +91,15 @@ class Diagnosis:
 
 
 def _screen_task(job):
-    name, test, reduction, options, baseline, index = job
-    return screen_candidate(name, test, reduction, options, baseline, index=index)
+    label, term, test, reduction, options, reference, baseline = job
+    return screen_candidate(label, test, reduction, options, reference, baseline=baseline, term=term)
 
 
 def _candidate_task(job):
-    name, test, reduction, options, baseline, index, guesses = job
-    return fit_candidate(name, test, reduction, options, baseline=baseline, index=index, guesses=guesses)
+    label, test, reduction, options, reference, baseline, guesses = job
+    if label.startswith("form:"):
+        return fit_model_form(label[5:], test, reduction, options)
+    return fit_candidate(label, test, reduction, options, reference=reference, baseline=baseline, guesses=guesses)
 
 
 # ---------------------------------------------------------------------------
@@ -247,66 +260,249 @@ def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=
             executor.close()
 
 
+def _run_fits(executor, jobs, say, test_name):
+    """Fit the jobs side by side (several workers) or one at a time with their ensembles side by side."""
+    if not jobs:
+        return []
+    if executor.workers > 1 and len(jobs) > 1:
+        say(f"{test_name}: fit {', '.join(j[0] for j in jobs)} on {executor.describe()}")
+        return executor.map(_candidate_task, jobs, desc="candidates", progress=False)
+    fitted = []
+    for i, job in enumerate(jobs):
+        label, test, reduction, options, reference, baseline, guesses = job
+        say(f"{test_name}: fit {label} ({i + 1}/{len(jobs)})")
+        if label.startswith("form:"):
+            fitted.append(fit_model_form(label[5:], test, reduction, options, executor=executor))
+        else:
+            fitted.append(fit_candidate(label, test, reduction, options, reference=reference, baseline=baseline,
+                                        guesses=guesses, executor=executor))
+    return fitted
+
+
+def _model_form_jobs(test, reduction, options, baseline):
+    if not options.model_forms:
+        return []
+    forms = ["form:" + ("exponential" if options.decay == "linear" else "linear")]
+    kinds = [p.kind for p in test.parachutes]
+    if len(kinds) > len(set(kinds)):      # a cluster of like canopies: individual against composite
+        forms.insert(0, "form:composite")
+    return [(f, test, reduction, options, None, baseline, None) for f in forms]
+
+
+def _model_forms(baseline, fits, options):
+    rows = []
+    for label, fit in fits.items():
+        form = label[5:]
+        diff, se = paired_difference(baseline, fit)
+        if form == "composite":
+            mine, other = "individual", "composite"
+        else:
+            mine, other = options.decay, form
+        better, worse, margin = (mine, other, diff) if diff >= 0 else (other, mine, -diff)
+        rows.append({"comparison": "cluster" if form == "composite" else "decay", "better": better, "other": worse,
+                     "elpd_diff": margin, "elpd_diff_se": se,
+                     "clear": bool(margin > options.min_gain_se * se),
+                     "in_words": f"{better} beats {worse} by {margin:.1f} ± {se:.1f} in elpd"
+                                 + ("" if margin > options.min_gain_se * se else " (within 2 se: no clear winner)"),
+                     "converged": bool(fit.fit.summary["diagnostics"]["converged"])})
+    return rows
+
+
+def discrepancy_where(candidate: CandidateFit, phase_fit: Fit, max_regions=6, draws=200, rng=None):
+    """Where the fitted discrepancy is clearly non-zero: [{channel, phase, t_start, t_end, size_sigma}].
+
+    A bin counts when the posterior mean of δ is beyond 2 posterior sd and beyond
+    the bin's stated 1-sigma; runs closer than 3 bins merge, runs of fewer than
+    3 bins are dropped, the largest (by Σ|δ|/σ) are kept. Phases are those of
+    ``phase_fit``'s residual report.
+    """
+    rng = rng if rng is not None else np.random.default_rng(0)
+    model, post = candidate.fit.model, candidate.fit.tree["posterior"]
+    theta = np.stack([np.asarray(post[n].values, float).ravel() for n in model.names], axis=-1)
+    theta = theta[rng.choice(theta.shape[0], size=min(draws, theta.shape[0]), replace=False)]
+    mean, sd = discrepancy_shape(model, theta)
+    obs = model.obs
+    sigma = np.concatenate([np.hypot(obs.acc_sigma, obs.acc_qbar)[None], np.hypot(obs.lc_sigma, obs.lc_qbar)])
+    phases = channel_phases(phase_fit)
+    names = list(phases)
+    regions = []
+    for c, channel in enumerate(names):
+        hit = (np.abs(mean[c]) > 2 * sd[c]) & (np.abs(mean[c]) > sigma[c])
+        idx = np.flatnonzero(hit)
+        if idx.size == 0:
+            continue
+        runs, start, prev = [], idx[0], idx[0]
+        for i in idx[1:]:
+            if i - prev > 3:
+                runs.append((start, prev))
+                start = i
+            prev = i
+        runs.append((start, prev))
+        for lo, hi in runs:
+            if hi - lo + 1 < 3:
+                continue
+            mid = (lo + hi) // 2
+            labels, counts = np.unique(phases[channel][lo:hi + 1], return_counts=True)
+            regions.append({"channel": channel, "phase": str(labels[np.argmax(counts)]),
+                            "t_start": float(obs.time[lo]), "t_end": float(obs.time[hi]),
+                            "peak_m2": float(mean[c][lo + np.argmax(np.abs(mean[c][lo:hi + 1]))]),
+                            "size_sigma": float(np.sum(np.abs(mean[c][lo:hi + 1]) / sigma[c][lo:hi + 1])),
+                            "t_mid": float(obs.time[mid])})
+    regions.sort(key=lambda r: -r["size_sigma"])
+    return regions[:max_regions], {"time": obs.time, "mean": mean, "sd": sd, "sigma": sigma, "channels": names}
+
+
+def _forward_selection(test, reduction, options, baseline, discrepancy, terms, executor, say):
+    """Name terms one at a time, each judged with the discrepancy present; returns (named, reference, rounds,
+    fits, first screen)."""
+    named, reference, rounds, fits, first_screen = [], discrepancy, [], {}, {}
+    trial = None            # a term named without a clear lead over ``trial[1]``
+    while len(named) < options.max_causes:
+        remaining = [t for t in terms if t not in named]
+        if not remaining:
+            break
+        labels = {t: model_label(named + [t], discrepancy=True) for t in remaining}
+        screen = {}
+        if options.mode == "screen" or named:
+            results = executor.map(_screen_task, [(labels[t], t, test, reduction, options, reference, baseline)
+                                                  for t in remaining], desc="screen", progress=False)
+            screen = dict(zip(remaining, results))
+            for t, r in screen.items():
+                say(f"{test.name}: screen {t} with {reference.name}: MAP gain {r.map_gain:+.1f}"
+                    + (f", size {r.size:.3g}" if r.size is not None else "") + (" → sample" if r.passed else ""))
+            if not named:
+                first_screen = screen
+        to_fit = [t for t in remaining if not screen or screen[t].passed]
+        jobs = [(labels[t], test, reduction, options, reference, baseline,
+                 [screen[t].theta_map] if t in screen else None) for t in to_fit]
+        fitted = dict(zip(to_fit, _run_fits(executor, jobs, say, test.name)))
+        fits.update({labels[t]: f for t, f in fitted.items()})
+        checks = [check_term(t, fitted[t], reference, options) for t in to_fit]
+        chosen, clear, reasons = choose_term(checks, {f.name: f for f in fitted.values()}, options)
+        if trial is not None:
+            earlier, rival = trial
+            rival_check = next((c for c in checks if c.term == rival), None)
+            if not (rival_check and rival_check.gains and rival_check.eligible):
+                named.remove(earlier)
+                reasons.append(f"{earlier} and {rival} explain the same structure and neither leads clearly: "
+                               "neither is named")
+                rounds.append({"named": list(named), "reference": reference.name, "checks": checks,
+                               "screen": screen, "chosen": None, "reasons": reasons})
+                reference = fits.get(model_label(named, discrepancy=True), discrepancy)
+                break
+            trial = None
+        rounds.append({"named": list(named), "reference": reference.name, "checks": checks, "screen": screen,
+                       "chosen": chosen, "reasons": reasons})
+        if chosen is None:
+            break
+        if not clear:
+            passing = sorted([c for c in checks if c.gains and c.eligible and c.term != chosen],
+                             key=lambda c: -c.elpd_diff)
+            trial = (chosen, passing[0].term)
+        named.append(chosen)
+        reference = fitted[chosen]
+    if trial is not None and trial[0] in named and len(named) == options.max_causes:
+        pass   # the rival could not be tried: the cap was reached
+    return named, reference, rounds, fits, first_screen
+
+
 def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     say = echo or (lambda msg: None)
+    if options.mode not in ("full", "screen"):
+        raise ValueError(f"unknown diagnosis mode {options.mode!r}; use 'full' or 'screen'")
     reduction = reduction if reduction is not None else reduce_test(test)
     if baseline_fit is None:
         say(f"{test.name}: baseline fit")
         baseline = fit_candidate(BASELINE, test, reduction, options, echo=echo, executor=executor)
     else:
         baseline = baseline_from_fit(baseline_fit)
-    screen = {}
-    to_fit = list(options.candidates)
-    if options.mode == "screen":
-        baseline = polish_baseline_map(baseline, options)
-        names = [n for n in options.candidates if n in PHYSICAL]
-        results = executor.map(_screen_task, [(n, test, reduction, options, baseline, i + 1)
-                                              for i, n in enumerate(names)], desc="screen", progress=False)
-        for name, r in zip(names, results):
-            screen[name] = r
-            say(f"{test.name}: screen {name}: MAP gain {r.map_gain:+.1f}"
-                + (f", size {r.size:.3g}" if r.size is not None else "") + (" → sample" if r.passed else ""))
-        passed = [n for n, r in screen.items() if r.passed]
-        to_fit = passed + ([n for n in options.candidates if n not in PHYSICAL] if passed else [])
-    elif options.mode != "full":
-        raise ValueError(f"unknown diagnosis mode {options.mode!r}; use 'full' or 'screen'")
-    jobs = [(name, test, reduction, options, baseline, options.candidates.index(name) + 1,
-             [screen[name].theta_map] if name in screen else None) for name in to_fit]
-    if executor.workers > 1 and len(jobs) > 1:
-        say(f"{test.name}: fit with {', '.join(to_fit)} on {executor.describe()}")
-        fitted = executor.map(_candidate_task, jobs, desc="candidates", progress=False)
-    else:  # one fit at a time, its ensembles side by side
-        fitted = []
-        for i, job in enumerate(jobs):
-            say(f"{test.name}: fit with {job[0]} ({i + 1}/{len(jobs)})")
-            fitted.append(fit_candidate(*job[:5], echo=echo, index=job[5], guesses=job[6], executor=executor))
-    candidates = dict(zip(to_fit, fitted))
+    baseline = polish_baseline_map(baseline, options)
+    warnings = []
+    terms = [n for n in options.candidates if n in PHYSICAL and applies(n, test)]
+    skipped = [n for n in options.candidates if n in PHYSICAL and n not in terms]
+    if skipped:
+        warnings.append(f"not tried: {', '.join(skipped)} (they act on load cells, and the test has none)")
+    generic = [n for n in options.candidates if n not in PHYSICAL and n != DISCREPANCY]
+
+    # the discrepancy, the model forms and any generic alternatives asked for, side by side
+    jobs = [(DISCREPANCY, test, reduction, options, baseline, baseline, None)]
+    jobs += _model_form_jobs(test, reduction, options, baseline)
+    jobs += [(g, test, reduction, options, baseline, baseline, None) for g in generic]
+    first = dict(zip([j[0] for j in jobs], _run_fits(executor, jobs, say, test.name)))
+    discrepancy = first[DISCREPANCY]
+    forms = {k: v for k, v in first.items() if k.startswith("form:")}
+    fits = {k: v for k, v in first.items() if not k.startswith("form:")}
+
+    named, reference, rounds, more, screen = _forward_selection(test, reduction, options, baseline, discrepancy,
+                                                                terms, executor, say)
+    fits.update(more)
+    named_fit = None
+    if named:
+        label = model_label(named)
+        named_fit = _run_fits(executor, [(label, test, reduction, options, reference, baseline, None)], say,
+                              test.name)[0]
+        fits[label] = named_fit
+    final = named_fit or baseline
+
     rng = np.random.default_rng([options.seed, 7])
     checks = run_checks(baseline.fit, rng=rng)
-    table = versus_baseline(baseline, candidates)
-    if candidates:
-        cause, reasons = name_cause(baseline, candidates, options)
-    else:
-        cause = "none"
-        reasons = [f"no physical term raised the MAP log posterior by more than {options.screen_gain:g} with a "
-                   "fitted size beyond its practical floor: "
-                   + "; ".join(f"{n} {r.map_gain:+.1f}" + (f" (size {r.size:.3g})" if r.size is not None else "")
-                               for n, r in screen.items())]
+    adequate, failures = adequacy(checks, options)
+    total, total_se = paired_difference(discrepancy, baseline)
+    remaining, remaining_se = paired_difference(reference, final)
+    share = unexplained_share(total, remaining) if named else 0.0
+    left = passes(remaining, remaining_se, options)
+    reasons = []
+    for r in rounds:
+        reasons += r["reasons"]
+    unexplained = None
+    is_unexplained = (left and (not named or share < options.min_share)) or (not named and not adequate)
+    where, shape = discrepancy_where(reference, final.fit)
+    if is_unexplained:
+        unexplained = {"elpd_gain": remaining, "elpd_gain_se": remaining_se, "share_explained": share,
+                       "where": [{k: w[k] for k in ("channel", "phase", "t_start", "t_end")} for w in where]}
+        if named:
+            reasons.append(f"the named terms explain {100 * share:.0f} % of the discrepancy's gain; what is left "
+                           f"gains {remaining:.1f} ± {remaining_se:.1f}: unexplained")
+        elif left:
+            reasons.insert(0, f"the generic discrepancy gains {remaining:.1f} ± {remaining_se:.1f} over the baseline "
+                              "and no catalogued term explains it: unexplained")
+        else:
+            reasons.insert(0, "no catalogued term explains the misfit and the baseline fails its own checks: "
+                              + "; ".join(failures[:3]))
+    elif not named:
+        reasons.insert(0, f"nothing to explain: the generic discrepancy gains {total:.1f} ± {total_se:.1f} and the "
+                          "baseline passes its own checks (multipliers, residual structure, PPC, LOO-PIT)")
+    causes = list(named) + (["unexplained"] if is_unexplained else [])
+    cause = causes[0] if causes else "none"
+
+    table = versus_baseline(baseline, fits)
     evidence = _evidence(checks, table)
-    physical = table[table["physical"]].sort_values("elpd_diff", ascending=False) if len(table) else table
-    shown = cause if cause != "none" else (str(physical.iloc[0]["name"]) if len(physical) else None)
     gain = {}
-    if shown is not None:
-        row = table.set_index("name").loc[shown]
+    if named_fit is not None:
+        row = table.set_index("name").loc[named_fit.name]
         base_q = fit_quality(baseline, rng)
-        ext_q = fit_quality(candidates[shown], rng)
-        gain = gain_table(base_q, ext_q, float(row["elpd_diff"]), float(row["elpd_diff_se"]), shown)
-        gain["named"] = cause != "none"
-        # for the figures, not the JSON
+        ext_q = fit_quality(named_fit, rng)
+        gain = gain_table(base_q, ext_q, float(row["elpd_diff"]), float(row["elpd_diff_se"]), named_fit.name)
+        gain["named"] = True
         gain["residuals"] = {"baseline": base_q["residuals"], "extended": ext_q["residuals"]}
         gain["means"] = {"baseline": base_q["means"], "extended": ext_q["means"]}
-    moved = {name: moved_parameters(baseline, c) for name, c in candidates.items()}
-    comparison = compare_table(baseline, candidates) if candidates else pd.DataFrame()
-    return Diagnosis(test=test.name, baseline=baseline, candidates=candidates, comparison=comparison,
+    moved = {name: moved_parameters(baseline, c) for name, c in fits.items()}
+    for name, m in moved.items():
+        big = [f"{k} ({v['shift_in_baseline_sd']:+.1f} sd)" for k, v in m.items()
+               if abs(v["shift_in_baseline_sd"]) > options.moved_sd]
+        if big and name.split("+")[0] in named + [DISCREPANCY]:
+            warnings.append(f"adding {name} moved {', '.join(big[:4])} by more than {options.moved_sd:g} baseline "
+                            "sd: those parameters trade off with it")
+    for r in rounds:
+        for c in r["checks"]:
+            if not c.converged:
+                warnings.append(f"the fit of {c.model} did not converge: {c.term} could not be named from it")
+    comparison = compare_table(baseline, fits)
+    return Diagnosis(test=test.name, baseline=baseline, candidates=fits, comparison=comparison,
                      versus_baseline=table, cause=cause, reasons=reasons, evidence=evidence, gain=gain, moved=moved,
-                     checks=checks, screen=screen, options=options)
+                     checks=checks, screen=screen, options=options, causes=causes, rounds=rounds,
+                     unexplained=unexplained,
+                     discrepancy={"elpd_gain": total, "elpd_gain_se": total_se, "where": where, "shape": shape,
+                                  "model": reference.name},
+                     adequacy={"adequate": adequate, "failures": failures},
+                     model_forms=_model_forms(baseline, forms, options), named_fit=named_fit, warnings=warnings)

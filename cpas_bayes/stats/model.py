@@ -109,6 +109,7 @@ class Extension:
     # (parameter, size): a fitted |median| below size is practically no effect (a region of
     # practical equivalence around the neutral value); None for terms without a physical size.
     practical_floor = None
+    needs_load_cells = False      # a term acting on load cells only does not apply without them
 
     def parameters(self, model):
         return []
@@ -140,6 +141,11 @@ class Extension:
 
     def log_likelihood(self, ctx, pred, obs):
         """Pointwise log-likelihood (B, N) replacing the independent Gaussian, or None."""
+        return None
+
+    def total_log_likelihood(self, ctx, pred, obs):
+        """Joint log-likelihood (B,) when it is not the sum of the pointwise values (e.g. a
+        marginalised discrepancy, whose pointwise values are leave-one-out conditionals), or None."""
         return None
 
 
@@ -241,15 +247,7 @@ class TestModel:
         self.n_chutes = len(test.parachutes)
         self.n_stages = max(len(p.stages) for p in test.parachutes)
         self.stages_per_chute = np.array([len(p.stages) for p in test.parachutes])
-        self.parameters = self._build_parameters()
-        self.names = [p.name for p in self.parameters]
-        self.prior_set = PriorSet(p.prior for p in self.parameters)
-        self.index = {n: i for i, n in enumerate(self.names)}
-        self._build_gather()
-        self.diameter = np.array([p.diameter for p in test.parachutes])
-        self.area_o = math.pi / 4 * self.diameter**2
-        self.chute_weight = np.array([p.weight for p in test.parachutes])
-        self.stated_total_weight = obs.stated_vehicle_weight + self.chute_weight.sum()
+        # The error model first: extensions may whiten with it while declaring their parameters.
         self._w_acc = 1.0 / obs.acc_sigma**2
         self._w_lc = 1.0 / obs.lc_sigma**2
         self._a_acc = obs.acc_qbar * self._w_acc
@@ -260,6 +258,15 @@ class TestModel:
         # Parameter-free part of log N per bin: −½·log det(D + uuᵀ) − ½·C·log 2π.
         self._ll_const = -0.5 * (np.log(obs.acc_sigma**2) + np.log(obs.lc_sigma**2).sum(axis=0)
                                  + np.log(self._denom) + n_channels * _LOG_2PI)
+        self.parameters = self._build_parameters()
+        self.names = [p.name for p in self.parameters]
+        self.prior_set = PriorSet(p.prior for p in self.parameters)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self._build_gather()
+        self.diameter = np.array([p.diameter for p in test.parachutes])
+        self.area_o = math.pi / 4 * self.diameter**2
+        self.chute_weight = np.array([p.weight for p in test.parachutes])
+        self.stated_total_weight = obs.stated_vehicle_weight + self.chute_weight.sum()
 
     # -- parameters -------------------------------------------------------
 
@@ -471,22 +478,31 @@ class TestModel:
         diag_lc = r_lc**2 * self._w_lc
         return diag_acc + diag_lc.sum(axis=1) - shared**2 / self._denom, r_acc, r_lc
 
-    def whitened_residuals(self, theta, pred):
-        """Residuals whitened with the per-bin covariance: z (B, C, N) with z ~ N(0, I) under the model.
+    def whiten(self, y):
+        """Apply the per-bin whitening Σ_b^(−½) (multipliers excluded) to drag-area residuals y (..., C, N).
 
         Channels are ordered accelerometer, then the load cells. With v = D^(−½)u,
         (I + vvᵀ)^(−½) = I − c·vvᵀ, c = (1 − 1/√(1 + |v|²))/|v|², so
-        z = (I − c·vvᵀ)·D^(−½)·r̃ and zᵀz is the quadratic form of the likelihood.
-        Also returns log det Σ per bin (B, N) (with the multipliers).
+        z = (I − c·vvᵀ)·D^(−½)·y and zᵀz is the quadratic form of the likelihood.
+        """
+        obs = self.obs
+        scale = np.concatenate([np.sqrt(self._w_acc)[None], np.sqrt(self._w_lc)])
+        y = np.asarray(y, float) * scale
+        v = np.concatenate([(obs.acc_qbar * np.sqrt(self._w_acc))[None], obs.lc_qbar * np.sqrt(self._w_lc)])
+        v2 = self._denom - 1.0
+        c = np.where(v2 > 1e-12, (1.0 - 1.0 / np.sqrt(self._denom)) / np.where(v2 > 1e-12, v2, 1.0), 0.5)
+        return y - c * v * (v * y).sum(axis=-2, keepdims=True)
+
+    def whitened_residuals(self, theta, pred):
+        """Residuals whitened with the per-bin covariance: z (B, C, N) with z ~ N(0, I) under the model.
+
+        :meth:`whiten` of the residuals divided by their channel's error
+        multiplier. Also returns log det Σ per bin (B, N) (with the multipliers).
         """
         obs = self.obs
         r_acc = (obs.acc[None, :] - pred.acc) / pred.noise_acc[:, None]
         r_lc = (obs.lc[None] - pred.lc) / pred.noise_lc[:, None, None]
-        y = np.concatenate([r_acc[:, None, :] * np.sqrt(self._w_acc), r_lc * np.sqrt(self._w_lc)], axis=1)
-        v = np.concatenate([(obs.acc_qbar * np.sqrt(self._w_acc))[None], obs.lc_qbar * np.sqrt(self._w_lc)])
-        v2 = self._denom - 1.0
-        c = np.where(v2 > 1e-12, (1.0 - 1.0 / np.sqrt(self._denom)) / np.where(v2 > 1e-12, v2, 1.0), 0.5)
-        z = y - c * v * (v * y).sum(axis=1, keepdims=True)
+        z = self.whiten(np.concatenate([r_acc[:, None, :], r_lc], axis=1))
         log_det = -2.0 * (self._ll_const + 0.5 * (1 + obs.lc.shape[0]) * _LOG_2PI) \
             + 2.0 * self._log_multipliers(pred)[:, None]
         return z, log_det
@@ -534,6 +550,11 @@ class TestModel:
             return self._baseline_log_likelihood(theta)
         pred = self.predict(theta)
         if self.replaces_error_model:
+            ctx = Context(self, theta, self.values(theta), self.obs.time)
+            for ext in self.extensions:
+                total = ext.total_log_likelihood(ctx, pred, self.obs)
+                if total is not None:
+                    return total
             return self.pointwise_log_likelihood(theta, pred).sum(axis=1)
         quad, _, _ = self._quadratic_form(theta, pred)
         return (-0.5 * quad.sum(axis=1) - self.obs.n_bins * self._log_multipliers(pred)

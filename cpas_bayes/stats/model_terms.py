@@ -36,7 +36,8 @@ baseline is never copied. The physics is the same as the simulator's
     widths are handled). The pointwise log-likelihood is the conditional
     log p(y_t | y_{t−1}) — the AR-conditional form that PSIS-LOO can use on
     correlated samples; its sum is the joint likelihood and at τ_c → 0 it is
-    the baseline's, bin by bin. A physical cause must beat this to be named.
+    the baseline's, bin by bin. Reported beside a diagnosis on request; the
+    generic term its rule uses is ``discrepancy`` (:mod:`cpas_bayes.stats.discrepancy`).
     Prior: τ_c lognormal, median 0.05 s, spread factor e^1.5, 0.001–5 s.
 """
 
@@ -48,6 +49,7 @@ import numpy as np
 
 from cpas_bayes.physics.effects import (added_mass, added_mass_acceleration, added_mass_momentum_rate, added_mass_rate,
                       breathing_factor)
+from cpas_bayes.stats.discrepancy import Discrepancy
 from cpas_bayes.stats.model import Extension, Parameter
 from cpas_bayes.stats.distributions import LogNormal, Normal, TruncNormal, Uniform
 from cpas_bayes.core.units import STANDARD_GRAVITY
@@ -91,6 +93,7 @@ class AddedMass(Extension):
 
 class FrictionDrift(Extension):
     name = "friction_drift"
+    needs_load_cells = True
     practical_floor = ("load_scale_change", 0.015)   # 1.5 % of the load; clean Mains fit up to 0.6 %
 
     def parameters(self, model):
@@ -110,6 +113,7 @@ class FrictionDrift(Extension):
 
 class SensorLag(Extension):
     name = "sensor_lag"
+    needs_load_cells = True
     practical_floor = ("lag", 0.010)   # one 100 Hz sample: clean bundles of two simulators fit 2–4 ms
 
     def parameters(self, model):
@@ -192,13 +196,19 @@ def _ar1_conditional(e, phi, innovation_var):
     return -0.5 * (resid**2 / innovation_var + np.log(innovation_var) + _LOG_2PI)
 
 
-EXTENSIONS = {cls.name: cls for cls in (AddedMass, FrictionDrift, SensorLag, CanopyBreathing, CorrelatedNoise)}
+EXTENSIONS = {cls.name: cls for cls in (AddedMass, FrictionDrift, SensorLag, CanopyBreathing, CorrelatedNoise,
+                                        Discrepancy)}
 PHYSICAL = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
+
+
+def applies(name, test):
+    """Whether term ``name`` can act on the channels ``test`` has (load-cell terms need load cells)."""
+    return not EXTENSIONS[name].needs_load_cells or any(p.load_cell for p in test.parachutes)
 
 
 def make_extension(name, **options):
     """An extension by name (``added_mass``, ``friction_drift``, ``sensor_lag``, ``canopy_breathing``,
-    ``correlated_noise``)."""
+    ``correlated_noise``, ``discrepancy``)."""
     try:
         return EXTENSIONS[name](**options)
     except KeyError:
