@@ -241,10 +241,10 @@ def test_log_prior_is_the_prior_set_plus_the_stage_order(examples):
 
 
 def test_compiled_point_interpolation_equals_numpy():
-    from cpas_bayes.stats.model import _interp
+    from cpas_bayes.stats.likelihood_kernel import interp
     xp = np.cumsum(np.random.default_rng(1).uniform(0.01, 0.1, 50))
     fp = np.sin(xp)
     for x in np.r_[xp[0] - 1, xp[0], xp[[3, 17]], 0.5 * (xp[20] + xp[21]), xp[-1], xp[-1] + 1,
                    np.random.default_rng(2).uniform(xp[0], xp[-1], 20)]:
-        assert _interp(x, xp, fp) == np.interp(x, xp, fp)
-    assert np.isnan(_interp(np.nan, xp, fp))
+        assert interp(x, xp, fp) == np.interp(x, xp, fp)
+    assert np.isnan(interp(np.nan, xp, fp))
