@@ -46,6 +46,24 @@ Parameter names: ``<chute>.cds_o``, ``<chute>.s<k>.<name>`` for stage k (1-based
 and name in start, n_p, expopen, ck, tk, eps; ``vehicle_weight``,
 ``vehicle_cds``, ``load_scale``, ``noise_acc``, ``noise_lc``; extensions add
 their own.
+
+Cluster form. ``cluster="individual"`` (the default, the seed's choice) gives
+each parachute its own inflation parameters. ``cluster="composite"`` is the
+"one summed canopy" model: the parachutes of one kind, inflation mode, diameter
+and stage count inflate in lockstep on ONE set of inflation parameters, named
+``cluster.<kind>.cds_o`` and ``cluster.<kind>.s<k>.<name>`` (``cluster.<kind>-<j>``,
+j = 1, 2, ... in parachute order, when one kind forms several such groups).
+Every canopy of a group has the shared drag area, so the accelerometer sees n
+times it and each load cell sees it. The tying is done by the gather arrays
+alone (several parachutes read the same θ columns), so ``predict`` and the
+compiled kernel need nothing else. The stage-start prior of a tied stage is
+Normal(mean of the stated starts, sqrt(mean of the stated sd² + variance of the
+stated starts)): the stated uncertainty widened by the spread between the
+canopies; with one parachute it is that parachute's own prior, so the
+composite model of a single canopy is the individual one under other names.
+:meth:`TestModel.parameter_name` maps a parachute's field to its parameter and
+:meth:`TestModel.derived` gives every parachute's ``<chute>.cds_o`` and
+``<chute>.s<k>.<name>`` in either form, so per-parachute readers need not know it.
 """
 
 from __future__ import annotations
@@ -63,6 +81,8 @@ from cpas_bayes.stats.distributions import Normal, TruncNormal
 from cpas_bayes.stats.priors import KindPriors, NuisancePriors, PriorSet
 
 _LOG_2PI = math.log(2.0 * math.pi)
+CLUSTER_FORMS = ("individual", "composite")
+_STAGE_FIELDS = ("start", "n_p", "expopen", "ck", "tk", "eps")
 
 
 @dataclass(frozen=True)
@@ -154,9 +174,12 @@ class TestModel:
     __test__ = False  # a flight *test* model, not a pytest class
 
     def __init__(self, test: FlightTest, obs: Observations, kind_priors: dict, nuisance: NuisancePriors,
-                 decay="linear", extensions=()):
+                 decay="linear", extensions=(), cluster="individual"):
         if decay not in DECAY_SHAPES:
             raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+        if cluster not in CLUSTER_FORMS:
+            raise ValueError(f"cluster must be one of {CLUSTER_FORMS}, got {cluster!r}")
+        self.cluster = cluster
         self.test = test
         self.obs = obs
         self.decay = decay
@@ -167,8 +190,11 @@ class TestModel:
         self.n_chutes = len(test.parachutes)
         self.n_stages = max(len(p.stages) for p in test.parachutes)
         self.stages_per_chute = np.array([len(p.stages) for p in test.parachutes])
+        self.chute_prefix = self._chute_prefixes()
         self.parameters = self._build_parameters()
         self.names = [p.name for p in self.parameters]
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"parameter names are not unique: {self.names}")
         self.prior_set = PriorSet(p.prior for p in self.parameters)
         self.index = {n: i for i, n in enumerate(self.names)}
         self._build_gather()
@@ -197,19 +223,43 @@ class TestModel:
     def name(self):
         return "baseline" if not self.extensions else "+".join(e.name for e in self.extensions)
 
+    def _chute_prefixes(self):
+        """Parameter prefix of each parachute: its id, or in the composite form its group's name."""
+        if self.cluster == "individual":
+            return [p.id for p in self.parachutes]
+        keys = [(p.kind, p.inflation, p.diameter, len(p.stages)) for p in self.parachutes]
+        groups = list(dict.fromkeys(keys))
+        per_kind = {}
+        for key in groups:
+            per_kind.setdefault(key[0], []).append(key)
+        names = {key: f"cluster.{key[0]}" if len(per_kind[key[0]]) == 1
+                 else f"cluster.{key[0]}-{per_kind[key[0]].index(key) + 1}" for key in groups}
+        return [names[key] for key in keys]
+
+    def parameter_name(self, chute, field):
+        """The parameter holding parachute ``chute``'s (index) ``field`` (``cds_o``, ``s<k>.<name>``), or None."""
+        name = f"{self.chute_prefix[chute]}.{field}"
+        return name if name in self.index else None
+
     def _build_parameters(self):
         params = []
         test = self.test
-        for p in test.parachutes:
+        members = {}
+        for p, prefix in zip(test.parachutes, self.chute_prefix):
+            members.setdefault(prefix, []).append(p)
+        for prefix, group in members.items():
+            p = group[0]
             kp: KindPriors = self.kind_priors[p.kind]
             s_o = math.pi / 4 * p.diameter**2
             cd = kp.parachute["cd_o"]
-            params.append(Parameter(f"{p.id}.cds_o", cd.scaled(s_o), "m²"))
+            params.append(Parameter(f"{prefix}.cds_o", cd.scaled(s_o), "m²"))
             n = len(p.stages)
-            for k, st in enumerate(p.stages):
+            for k in range(n):
                 role = stage_role(k, n)
-                pre = f"{p.id}.{stage_tag(k)}"
-                params.append(Parameter(f"{pre}.start", Normal(st.start, max(st.start_sigma, 1e-3)), "s"))
+                pre = f"{prefix}.{stage_tag(k)}"
+                starts = np.array([q.stages[k].start for q in group])
+                sd = math.sqrt(np.mean([q.stages[k].start_sigma ** 2 for q in group]) + starts.var())
+                params.append(Parameter(f"{pre}.start", Normal(float(starts.mean()), max(sd, 1e-3)), "s"))
                 params.append(Parameter(f"{pre}.n_p", kp.for_stage(role, "n_p")))
                 params.append(Parameter(f"{pre}.expopen", kp.for_stage(role, "expopen")))
                 if p.inflation == "infinite":
@@ -239,13 +289,13 @@ class TestModel:
         P, K, D = self.n_chutes, self.n_stages, self.ndim
         constants = {"one": D, "zero": D + 1}
         self._constants = np.array([1.0, 0.0])
-        gather = {name: np.full((P, K), -1, dtype=int) for name in ("start", "n_p", "expopen", "ck", "tk", "eps")}
+        gather = {name: np.full((P, K), -1, dtype=int) for name in _STAGE_FIELDS}
         self.stage_mask = np.zeros((P, K), dtype=bool)
         for i, p in enumerate(self.parachutes):
             n = len(p.stages)
             for k in range(K):
                 kk = min(k, n - 1)  # pad short parachutes by repeating their last stage
-                pre = f"{p.id}.{stage_tag(kk)}"
+                pre = f"{self.chute_prefix[i]}.{stage_tag(kk)}"
                 self.stage_mask[i, k] = k < n
                 for name in gather:
                     key = f"{pre}.{name}"
@@ -258,7 +308,7 @@ class TestModel:
                 if k >= n:  # padded stage: starts after the data end, never active
                     gather["start"][i, k] = -2
         self._gather = gather
-        self._cds_o_index = np.array([self.index[f"{p.id}.cds_o"] for p in self.parachutes])
+        self._cds_o_index = np.array([self.index[f"{prefix}.cds_o"] for prefix in self.chute_prefix])
         # The same gather for the fused kernel, which never reads padded stages.
         stacked = np.stack(list(gather.values()))
         self._gather_array = np.where(stacked < 0, constants["zero"], stacked).astype(np.int64)
@@ -267,8 +317,9 @@ class TestModel:
                                        ("vehicle_weight", "vehicle_cds", "noise_acc", "load_scale", "noise_lc")],
                                       dtype=np.int64)
         # Columns of each parachute's consecutive stage starts, for the prior's ordering check.
-        pairs = [(gather["start"][i, k], gather["start"][i, k + 1])
-                 for i, n in enumerate(self.stages_per_chute) for k in range(n - 1)]
+        # (A composite group's parachutes share their columns: each pair once.)
+        pairs = list(dict.fromkeys((int(gather["start"][i, k]), int(gather["start"][i, k + 1]))
+                                   for i, n in enumerate(self.stages_per_chute) for k in range(n - 1)))
         self._start_order = tuple(np.ascontiguousarray(a) for a in np.array(pairs, dtype=np.int64).reshape(-1, 2).T)
 
     def gather_stages(self, theta):
@@ -497,14 +548,24 @@ class TestModel:
     # -- derived quantities ------------------------------------------------------
 
     def derived(self, theta):
-        """Per-stage derived quantities {name: (B,)}: n (Eq. 18), eps, cds, t_f, t_fp."""
+        """Per-stage derived quantities {name: (B,)}: n (Eq. 18), eps, cds, t_f, t_fp.
+
+        In the composite form also each parachute's view of its group's parameters
+        (``<chute>.cds_o``, ``<chute>.s<k>.start``, ...), under the individual form's names.
+        """
         theta = np.atleast_2d(theta)
         stage = self.gather_stages(theta)
         _, timing = self.drag_areas(stage, self.obs.time[:1])
         out = {}
         for i, p in enumerate(self.parachutes):
+            if p.id != self.chute_prefix[i]:
+                out[f"{p.id}.cds_o"] = stage["cds_o"][:, i]
             for k in range(len(p.stages)):
                 pre = f"{p.id}.{stage_tag(k)}"
+                for name in _STAGE_FIELDS[:5]:
+                    tied = self.parameter_name(i, f"{stage_tag(k)}.{name}")
+                    if tied is not None and tied != f"{pre}.{name}":
+                        out[f"{pre}.{name}"] = theta[:, self.index[tied]]
                 out[f"{pre}.n"] = timing.n[:, i, k]
                 out[f"{pre}.eps"] = stage["eps"][:, i, k]
                 out[f"{pre}.cds"] = stage["cds_stage"][:, i, k]
