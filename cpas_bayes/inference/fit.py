@@ -351,7 +351,7 @@ def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), n
     once and builds every model it needs (baseline, extensions) from that.
     ``decay`` is one of :data:`cpas_bayes.physics.inflation.DECAY_SHAPES`; ``cluster``
     "individual" (each parachute its own inflation) or "composite" (parachutes of one
-    kind in lockstep, see :mod:`cpas_bayes.stats.model`).
+    kind in lockstep, see :mod:`cpas_bayes.stats.cluster_form`).
     """
     from cpas_bayes.stats.observations import build_observations
     from cpas_bayes.stats.priors import load_test_priors

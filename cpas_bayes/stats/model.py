@@ -47,23 +47,12 @@ and name in start, n_p, expopen, ck, tk, eps; ``vehicle_weight``,
 ``vehicle_cds``, ``load_scale``, ``noise_acc``, ``noise_lc``; extensions add
 their own.
 
-Cluster form. ``cluster="individual"`` (the default, the seed's choice) gives
-each parachute its own inflation parameters. ``cluster="composite"`` is the
-"one summed canopy" model: the parachutes of one kind, inflation mode, diameter
-and stage count inflate in lockstep on ONE set of inflation parameters, named
-``cluster.<kind>.cds_o`` and ``cluster.<kind>.s<k>.<name>`` (``cluster.<kind>-<j>``,
-j = 1, 2, ... in parachute order, when one kind forms several such groups).
-Every canopy of a group has the shared drag area, so the accelerometer sees n
-times it and each load cell sees it. The tying is done by the gather arrays
-alone (several parachutes read the same θ columns), so ``predict`` and the
-compiled kernel need nothing else. The stage-start prior of a tied stage is
-Normal(mean of the stated starts, sqrt(mean of the stated sd² + variance of the
-stated starts)): the stated uncertainty widened by the spread between the
-canopies; with one parachute it is that parachute's own prior, so the
-composite model of a single canopy is the individual one under other names.
-:meth:`TestModel.parameter_name` maps a parachute's field to its parameter and
-:meth:`TestModel.derived` gives every parachute's ``<chute>.cds_o`` and
-``<chute>.s<k>.<name>`` in either form, so per-parachute readers need not know it.
+Cluster form (:mod:`cpas_bayes.stats.cluster_form`): ``cluster="individual"``
+as above, or ``"composite"``, where the parachutes of one kind inflate in
+lockstep on one set of parameters ``cluster.<kind>.*``, tied by the gather
+arrays. :meth:`TestModel.parameter_name` maps a parachute's field to its
+parameter; :meth:`TestModel.derived` gives every parachute's ``<chute>.cds_o``
+and ``<chute>.s<k>.<name>`` in either form.
 """
 
 from __future__ import annotations
@@ -75,13 +64,13 @@ import numpy as np
 
 from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.physics.inflation import DECAY_SHAPES, cluster_drag_area, stage_role, stage_tag
+from cpas_bayes.stats.cluster_form import chute_prefixes, start_prior
 from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
 from cpas_bayes.stats.observations import Observations
-from cpas_bayes.stats.distributions import Normal, TruncNormal
+from cpas_bayes.stats.distributions import TruncNormal
 from cpas_bayes.stats.priors import KindPriors, NuisancePriors, PriorSet
 
 _LOG_2PI = math.log(2.0 * math.pi)
-CLUSTER_FORMS = ("individual", "composite")
 _STAGE_FIELDS = ("start", "n_p", "expopen", "ck", "tk", "eps")
 
 
@@ -177,8 +166,7 @@ class TestModel:
                  decay="linear", extensions=(), cluster="individual"):
         if decay not in DECAY_SHAPES:
             raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
-        if cluster not in CLUSTER_FORMS:
-            raise ValueError(f"cluster must be one of {CLUSTER_FORMS}, got {cluster!r}")
+        self.chute_prefix = chute_prefixes(test.parachutes, cluster)   # refuses an unknown form
         self.cluster = cluster
         self.test = test
         self.obs = obs
@@ -190,7 +178,6 @@ class TestModel:
         self.n_chutes = len(test.parachutes)
         self.n_stages = max(len(p.stages) for p in test.parachutes)
         self.stages_per_chute = np.array([len(p.stages) for p in test.parachutes])
-        self.chute_prefix = self._chute_prefixes()
         self.parameters = self._build_parameters()
         self.names = [p.name for p in self.parameters]
         if len(set(self.names)) != len(self.names):
@@ -223,19 +210,6 @@ class TestModel:
     def name(self):
         return "baseline" if not self.extensions else "+".join(e.name for e in self.extensions)
 
-    def _chute_prefixes(self):
-        """Parameter prefix of each parachute: its id, or in the composite form its group's name."""
-        if self.cluster == "individual":
-            return [p.id for p in self.parachutes]
-        keys = [(p.kind, p.inflation, p.diameter, len(p.stages)) for p in self.parachutes]
-        groups = list(dict.fromkeys(keys))
-        per_kind = {}
-        for key in groups:
-            per_kind.setdefault(key[0], []).append(key)
-        names = {key: f"cluster.{key[0]}" if len(per_kind[key[0]]) == 1
-                 else f"cluster.{key[0]}-{per_kind[key[0]].index(key) + 1}" for key in groups}
-        return [names[key] for key in keys]
-
     def parameter_name(self, chute, field):
         """The parameter holding parachute ``chute``'s (index) ``field`` (``cds_o``, ``s<k>.<name>``), or None."""
         name = f"{self.chute_prefix[chute]}.{field}"
@@ -257,9 +231,7 @@ class TestModel:
             for k in range(n):
                 role = stage_role(k, n)
                 pre = f"{prefix}.{stage_tag(k)}"
-                starts = np.array([q.stages[k].start for q in group])
-                sd = math.sqrt(np.mean([q.stages[k].start_sigma ** 2 for q in group]) + starts.var())
-                params.append(Parameter(f"{pre}.start", Normal(float(starts.mean()), max(sd, 1e-3)), "s"))
+                params.append(Parameter(f"{pre}.start", start_prior([q.stages[k] for q in group]), "s"))
                 params.append(Parameter(f"{pre}.n_p", kp.for_stage(role, "n_p")))
                 params.append(Parameter(f"{pre}.expopen", kp.for_stage(role, "expopen")))
                 if p.inflation == "infinite":
