@@ -118,3 +118,39 @@ def test_independent_examples_converge_and_cover_the_truth(tmp_path):
     coverage = np.concatenate(covered).mean()
     assert 0.85 <= coverage <= 0.97, f"coverage {coverage:.3f}"
     shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def test_composite_cluster_fits_end_to_end_and_loses_to_individual_parachutes(drogue_example, tmp_path):
+    """The composite ("one summed canopy") model runs through fit, summary, checks and figures, and on
+    data of two drogues whose second stages open half a second apart PSIS-LOO prefers individual canopies."""
+    from cpas_bayes.inference.candidate_fits import psis_loo
+    from cpas_bayes.inference.fit_folder import load_fit
+    from cpas_bayes.inference.predictive_checks import run_checks
+    from cpas_bayes.outputs.plots.fit import write_fit_figures
+
+    test, individual, truth = drogue_example
+    first, second = (truth[f"{p.id}.s2.start"] for p in test.parachutes)
+    assert abs(first - second) > 0.3
+    composite = prepare_model(test, reduce_test(test), cluster="composite")
+    options = SamplerOptions(seed=3, n_ensembles=2, check_every=250, max_steps=1000, tau_factor=5.0, tau_rtol=0.5,
+                             map_starts=2, workers=2, progress=False)
+    fit = fit_model(composite, options, out=tmp_path / "composite")
+    d = fit.summary["diagnostics"]
+    assert d["rhat_max"] < 1.02 and all(d["ensembles_converged"]), d
+    assert fit.summary["cluster"] == "composite" and fit.tree.attrs["cluster"] == "composite"
+    chutes = fit.summary["parachutes"]
+    assert chutes["D3"]["cds_o"] == chutes["D6"]["cds_o"]
+    assert chutes["D3"]["stages"][1]["n_p"] == chutes["D6"]["stages"][1]["n_p"]
+    record = load_fit(tmp_path / "composite")      # the folder reads back, per-parachute views included
+    assert [c[0] for c in record.parachutes()] == ["D3", "D6"]
+    assert {"cluster.drogue.cds_o", "D3.cds_o", "D6.s2.start"} <= set(record.draws)
+    checks = run_checks(fit, n_draws=60, rng=0)
+    names = {p.name for p in write_fit_figures(fit, tmp_path / "figures", checks=checks, n_draws=40)}
+    assert {"corner_D3_s1.png", "corner_D3_s2.png", "bands.png", "residuals.png"} <= names
+    assert not any(n.startswith("corner_D6") for n in names)     # one group, its corners once
+
+    loo_composite = psis_loo(fit.tree)
+    loo_individual = psis_loo(fit_model(individual, options).tree)
+    diff = np.asarray(loo_composite.elpd_i.values).ravel() - np.asarray(loo_individual.elpd_i.values).ravel()
+    se = np.sqrt(diff.size * np.var(diff, ddof=1))
+    assert diff.sum() < -4 * se, (diff.sum(), se)

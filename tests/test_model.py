@@ -241,10 +241,86 @@ def test_log_prior_is_the_prior_set_plus_the_stage_order(examples):
 
 
 def test_compiled_point_interpolation_equals_numpy():
-    from cpas_bayes.stats.model import _interp
+    from cpas_bayes.stats.likelihood_kernel import interp
     xp = np.cumsum(np.random.default_rng(1).uniform(0.01, 0.1, 50))
     fp = np.sin(xp)
     for x in np.r_[xp[0] - 1, xp[0], xp[[3, 17]], 0.5 * (xp[20] + xp[21]), xp[-1], xp[-1] + 1,
                    np.random.default_rng(2).uniform(xp[0], xp[-1], 20)]:
-        assert _interp(x, xp, fp) == np.interp(x, xp, fp)
-    assert np.isnan(_interp(np.nan, xp, fp))
+        assert interp(x, xp, fp) == np.interp(x, xp, fp)
+    assert np.isnan(interp(np.nan, xp, fp))
+
+
+# ---------------------------------------------------------------------------
+# cluster form and decay shape
+
+
+def test_composite_of_one_parachute_is_the_individual_model(examples):
+    test, _, _ = examples["drogue-clean"]
+    one = dataclasses.replace(test, parachutes=test.parachutes[:1])
+    reduction = reduce_test(one)
+    individual = prepare_model(one, reduction)
+    composite = prepare_model(one, reduction, cluster="composite")
+    pid = one.parachutes[0].id
+    rename = {n: n.replace(f"{pid}.", "cluster.drogue.", 1) if n.startswith(f"{pid}.") else n
+              for n in individual.names}
+    assert sorted(rename.values()) == sorted(composite.names)
+    for name in individual.names:   # the same priors under the other names
+        assert (individual.parameters[individual.index[name]].prior.describe()
+                == composite.parameters[composite.index[rename[name]]].prior.describe())
+    rng = np.random.default_rng(21)
+    draws = np.vstack([individual.sample_prior(rng, 48), _rows_near_first_guess(individual, rng, n=16)])
+    columns = [individual.index[n] for n in (next(i for i, r in rename.items() if r == c) for c in composite.names)]
+    np.testing.assert_array_equal(composite(draws[:, columns]), individual(draws))
+    np.testing.assert_array_equal(composite.pointwise_log_likelihood(draws[:, columns]),
+                                  individual.pointwise_log_likelihood(draws))
+
+
+@pytest.mark.parametrize("name", ["drogue-clean", "main-clean"])
+def test_composite_cluster_inflates_in_lockstep(examples, name):
+    test, individual, _ = examples[name]
+    composite = prepare_model(test, reduce_test(test), cluster="composite")
+    kind = test.parachutes[0].kind
+    assert composite.chute_prefix == [f"cluster.{kind}"] * len(test.parachutes)
+    per_chute = 1 + sum(1 for n in individual.names if n.startswith(f"{test.parachutes[0].id}.s"))
+    assert composite.ndim == individual.ndim - (len(test.parachutes) - 1) * per_chute
+    # The tied stage start: the mean of the stated starts, sd from their stated sd and their spread.
+    starts = np.array([[s.start for s in p.stages] for p in test.parachutes])
+    sigmas = np.array([[s.start_sigma for s in p.stages] for p in test.parachutes])
+    prior = composite.parameters[composite.index[f"cluster.{kind}.s2.start"]].prior.describe()
+    assert prior["mu"] == pytest.approx(starts[:, 1].mean())
+    assert prior["sigma"] == pytest.approx(np.sqrt(np.mean(sigmas[:, 1] ** 2) + starts[:, 1].var()))
+    rng = np.random.default_rng(12)
+    draws = composite.sample_prior(rng, 32)
+    pred = composite.predict(draws)
+    np.testing.assert_array_equal(pred.cds, np.repeat(pred.cds[:, :1], len(test.parachutes), axis=1))
+    # Every parachute's view of the shared parameters, under the individual form's names.
+    derived = composite.derived(draws)
+    for i, p in enumerate(test.parachutes):
+        assert composite.parameter_name(i, "s1.n_p") == f"cluster.{kind}.s1.n_p"
+        np.testing.assert_array_equal(derived[f"{p.id}.cds_o"], draws[:, composite.index[f"cluster.{kind}.cds_o"]])
+        np.testing.assert_array_equal(derived[f"{p.id}.s1.start"],
+                                      draws[:, composite.index[f"cluster.{kind}.s1.start"]])
+    assert np.isfinite(composite(first_guess(composite)[None])).all()
+
+
+@pytest.mark.parametrize("cluster", ["individual", "composite"])
+@pytest.mark.parametrize("decay", ["linear", "exponential"])
+@pytest.mark.parametrize("name", ["drogue-clean", "main-clean"])
+def test_fused_likelihood_equals_numpy_for_each_decay_and_cluster_form(examples, name, decay, cluster):
+    test, _, _ = examples[name]
+    model = prepare_model(test, reduce_test(test), decay=decay, cluster=cluster)
+    assert model.decay == decay and model.cluster == cluster
+    rng = np.random.default_rng(13)
+    draws = model.sample_prior(rng, 48)
+    draws = draws[np.isfinite(model.log_prior(draws))]
+    assert draws.shape[0] > 24
+    fused = model.log_likelihood(draws)
+    reference = model.pointwise_log_likelihood(draws).sum(axis=1)
+    np.testing.assert_allclose(fused, reference, rtol=1e-8)
+    _assert_fused_equals_numpy(model, _rows_near_first_guess(model, rng))
+
+
+def test_unknown_cluster_form_is_refused(examples):
+    test, _, _ = examples["drogue-clean"]
+    with pytest.raises(ValueError, match="cluster must be one of"):
+        prepare_model(test, reduce_test(test), cluster="summed")

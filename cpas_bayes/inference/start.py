@@ -37,6 +37,7 @@ def first_guess(model: TestModel):
         lc_sum = obs.lc[:, late].sum(axis=0).mean()
         scale = float(np.clip(total_late / max(lc_sum, 1e-9), 0.85, 1.5))
         theta[idx["load_scale"]] = scale
+    guesses = {}   # parameter -> guesses of its parachutes (several in a composite group: averaged)
     for i, p in enumerate(model.parachutes):
         def level(t0, t1, i=i):
             window = (t >= t0 + 0.6 * (t1 - t0)) & (t < t1)
@@ -46,17 +47,19 @@ def first_guess(model: TestModel):
                 return float(np.median(obs.lc[lc_rows[i], window])) * scale
             return float(np.median(obs.acc[window]) + obs.stated_vehicle_cds) / model.n_chutes
         starts = [s.start for s in p.stages] + [t[-1] + 1e-9]
-        cds_o = max(level(starts[-2], starts[-1]), 1e-3)
-        prior = model.parameters[idx[f"{p.id}.cds_o"]].prior
-        lo, hi = prior.support
-        theta[idx[f"{p.id}.cds_o"]] = float(np.clip(cds_o, lo + 1e-6 * (hi - lo), hi - 1e-6 * (hi - lo)))
+        key = model.parameter_name(i, "cds_o")
+        lo, hi = model.parameters[idx[key]].prior.support
+        cds_o = float(np.clip(max(level(starts[-2], starts[-1]), 1e-3), lo + 1e-6 * (hi - lo), hi - 1e-6 * (hi - lo)))
+        guesses.setdefault(key, []).append(cds_o)
         for k, st in enumerate(p.stages):
-            theta[idx[f"{p.id}.s{k + 1}.start"]] = st.start
-            key = f"{p.id}.s{k + 1}.eps"
-            if key in idx:
-                eps = level(starts[k], starts[k + 1]) / theta[idx[f"{p.id}.cds_o"]]
+            guesses.setdefault(model.parameter_name(i, f"s{k + 1}.start"), []).append(st.start)
+            key = model.parameter_name(i, f"s{k + 1}.eps")
+            if key is not None:
+                eps = level(starts[k], starts[k + 1]) / cds_o
                 lo, hi = model.parameters[idx[key]].prior.support
-                theta[idx[key]] = float(np.clip(eps, lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo)))
+                guesses.setdefault(key, []).append(float(np.clip(eps, lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo))))
+    for key, values in guesses.items():
+        theta[idx[key]] = np.mean(values)
     return theta
 
 

@@ -38,13 +38,21 @@ Extensions (:mod:`cpas_bayes.stats.model_terms`) plug into the hooks of step 2 a
 without copying the model.
 
 For the sampler, the baseline's total log-likelihood runs steps 1, 3 and 4 in
-one compiled loop per walker (:func:`_baseline_quadratic_form`); the numpy
+one compiled loop per walker
+(:func:`cpas_bayes.stats.likelihood_kernel.baseline_quadratic_form`); the numpy
 pipeline above stays the reference (``predict``, pointwise values, extensions).
 
 Parameter names: ``<chute>.cds_o``, ``<chute>.s<k>.<name>`` for stage k (1-based)
 and name in start, n_p, expopen, ck, tk, eps; ``vehicle_weight``,
 ``vehicle_cds``, ``load_scale``, ``noise_acc``, ``noise_lc``; extensions add
 their own.
+
+Cluster form (:mod:`cpas_bayes.stats.cluster_form`): ``cluster="individual"``
+as above, or ``"composite"``, where the parachutes of one kind inflate in
+lockstep on one set of parameters ``cluster.<kind>.*``, tied by the gather
+arrays. :meth:`TestModel.parameter_name` maps a parachute's field to its
+parameter; :meth:`TestModel.derived` gives every parachute's ``<chute>.cds_o``
+and ``<chute>.s<k>.<name>`` in either form.
 """
 
 from __future__ import annotations
@@ -52,16 +60,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from cpas_bayes.data.bundle import FlightTest
-from cpas_bayes.physics.inflation import DECAY_SHAPES, cluster_drag_area, parachute_stage_law, stage_role, stage_tag
+from cpas_bayes.physics.inflation import DECAY_SHAPES, cluster_drag_area, stage_role, stage_tag
+from cpas_bayes.stats.cluster_form import chute_prefixes, start_prior
+from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
 from cpas_bayes.stats.observations import Observations
-from cpas_bayes.stats.distributions import Normal, TruncNormal
+from cpas_bayes.stats.distributions import TruncNormal
 from cpas_bayes.stats.priors import KindPriors, NuisancePriors, PriorSet
 
 _LOG_2PI = math.log(2.0 * math.pi)
+_STAGE_FIELDS = ("start", "n_p", "expopen", "ck", "tk", "eps")
 
 
 @dataclass(frozen=True)
@@ -149,81 +159,6 @@ class Extension:
         return None
 
 
-@numba.njit(cache=True)
-def _interp(x, xp, fp):
-    """np.interp at one point (same formula and end clamping), without numba's per-call array."""
-    n = xp.shape[0]
-    if np.isnan(x):
-        return x
-    if x < xp[0]:
-        return fp[0]
-    j = np.searchsorted(xp, x, side="right") - 1
-    if j >= n - 1 or xp[j] == x:
-        return fp[j]
-    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
-    return slope * (x - xp[j]) + fp[j]
-
-
-@numba.njit(cache=True)
-def _baseline_quadratic_form(theta, consts, gather, cds_o_index, diameter, n_stages, linear, native_time,
-                             native_airspeed, t, acc_obs, lc_obs, lc_weight_term, lc_index, scalars,
-                             stated_vehicle_cds, stated_total_weight, chute_weight_sum,
-                             w_acc, a_acc, w_lc, a_lc, inv_denom, out):
-    """Σ over bins of r̃ᵀ(D + uuᵀ)⁻¹r̃ per walker (B,) into ``out``: predict + _quadratic_form fused.
-
-    ``gather`` (6, P, K) indexes θ for start, n_p, expopen, ck, tk, eps (≥ D: ``consts``);
-    ``scalars`` the columns of vehicle_weight, vehicle_cds, noise_acc, load_scale, noise_lc.
-    Scratch is one walker's (P, N) drag areas and (N,) sums, so memory stays small for any batch.
-    """
-    B, D = theta.shape
-    P, K = gather.shape[1], gather.shape[2]
-    N = t.shape[0]
-    L = lc_index.shape[0]
-    cds = np.empty((P, N))
-    stage = np.empty((7, K))      # start, n_p, expopen, ck, tk, cds_stage, v_start
-    timing = np.empty((4, K))     # unused outputs of the stage law
-    shared = np.empty(N)          # Σ_c r̃_c·u_c/d_c² per bin
-    diag = np.empty(N)            # Σ_c r̃_c²/d_c² per bin
-    for b in range(B):
-        for p in range(P):
-            cds_o = theta[b, cds_o_index[p]]
-            for k in range(n_stages[p]):
-                for j in range(6):
-                    g = gather[j, p, k]
-                    stage[j, k] = theta[b, g] if g < D else consts[g - D]
-                stage[5, k] *= cds_o
-                stage[6, k] = _interp(stage[0, k], native_time, native_airspeed)
-            cds[p, :] = 0.0
-            parachute_stage_law(t, stage[0], stage[5], cds_o, diameter[p], stage[1], stage[2], stage[3],
-                              stage[4], stage[6], n_stages[p], linear, True, True, cds[p],
-                              timing[0], timing[1], timing[2], timing[3])
-        weight_ratio = stated_total_weight / (theta[b, scalars[0]] + chute_weight_sum)
-        cds_v = theta[b, scalars[1]]
-        # Reciprocals: divisions in the bin loop would bound its speed.
-        inv_noise_acc = 1.0 / theta[b, scalars[2]]
-        inv_scale = 1.0 / theta[b, scalars[3]] if L > 0 else 1.0
-        inv_noise_lc = 1.0 / theta[b, scalars[4]] if L > 0 else 1.0
-        keep = 1.0 - inv_scale
-        # Channel by channel over the bins (contiguous loops the compiler vectorises).
-        for i in range(N):
-            total = cds[0, i]
-            for p in range(1, P):
-                total += cds[p, i]
-            r = (acc_obs[i] - (weight_ratio * (total + cds_v) - stated_vehicle_cds)) * inv_noise_acc
-            shared[i] = r * a_acc[i]
-            diag[i] = r * r * w_acc[i]
-        for l in range(L):
-            c = lc_index[l]
-            for i in range(N):
-                r = (lc_obs[l, i] - (cds[c, i] * inv_scale + lc_weight_term[l, i] * keep)) * inv_noise_lc
-                shared[i] += r * a_lc[l, i]
-                diag[i] += r * r * w_lc[l, i]
-        quad = 0.0
-        for i in range(N):
-            quad += diag[i] - shared[i] * shared[i] * inv_denom[i]
-        out[b] = quad
-
-
 class TestModel:
     """Parameters, priors and batched likelihood of one flight test.
 
@@ -234,9 +169,11 @@ class TestModel:
     __test__ = False  # a flight *test* model, not a pytest class
 
     def __init__(self, test: FlightTest, obs: Observations, kind_priors: dict, nuisance: NuisancePriors,
-                 decay="linear", extensions=()):
+                 decay="linear", extensions=(), cluster="individual"):
         if decay not in DECAY_SHAPES:
             raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+        self.chute_prefix = chute_prefixes(test.parachutes, cluster)   # refuses an unknown form
+        self.cluster = cluster
         self.test = test
         self.obs = obs
         self.decay = decay
@@ -260,6 +197,8 @@ class TestModel:
                                  + np.log(self._denom) + n_channels * _LOG_2PI)
         self.parameters = self._build_parameters()
         self.names = [p.name for p in self.parameters]
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"parameter names are not unique: {self.names}")
         self.prior_set = PriorSet(p.prior for p in self.parameters)
         self.index = {n: i for i, n in enumerate(self.names)}
         self._build_gather()
@@ -278,19 +217,28 @@ class TestModel:
     def name(self):
         return "baseline" if not self.extensions else "+".join(e.name for e in self.extensions)
 
+    def parameter_name(self, chute, field):
+        """The parameter holding parachute ``chute``'s (index) ``field`` (``cds_o``, ``s<k>.<name>``), or None."""
+        name = f"{self.chute_prefix[chute]}.{field}"
+        return name if name in self.index else None
+
     def _build_parameters(self):
         params = []
         test = self.test
-        for p in test.parachutes:
+        members = {}
+        for p, prefix in zip(test.parachutes, self.chute_prefix):
+            members.setdefault(prefix, []).append(p)
+        for prefix, group in members.items():
+            p = group[0]
             kp: KindPriors = self.kind_priors[p.kind]
             s_o = math.pi / 4 * p.diameter**2
             cd = kp.parachute["cd_o"]
-            params.append(Parameter(f"{p.id}.cds_o", cd.scaled(s_o), "m²"))
+            params.append(Parameter(f"{prefix}.cds_o", cd.scaled(s_o), "m²"))
             n = len(p.stages)
-            for k, st in enumerate(p.stages):
+            for k in range(n):
                 role = stage_role(k, n)
-                pre = f"{p.id}.{stage_tag(k)}"
-                params.append(Parameter(f"{pre}.start", Normal(st.start, max(st.start_sigma, 1e-3)), "s"))
+                pre = f"{prefix}.{stage_tag(k)}"
+                params.append(Parameter(f"{pre}.start", start_prior([q.stages[k] for q in group]), "s"))
                 params.append(Parameter(f"{pre}.n_p", kp.for_stage(role, "n_p")))
                 params.append(Parameter(f"{pre}.expopen", kp.for_stage(role, "expopen")))
                 if p.inflation == "infinite":
@@ -320,13 +268,13 @@ class TestModel:
         P, K, D = self.n_chutes, self.n_stages, self.ndim
         constants = {"one": D, "zero": D + 1}
         self._constants = np.array([1.0, 0.0])
-        gather = {name: np.full((P, K), -1, dtype=int) for name in ("start", "n_p", "expopen", "ck", "tk", "eps")}
+        gather = {name: np.full((P, K), -1, dtype=int) for name in _STAGE_FIELDS}
         self.stage_mask = np.zeros((P, K), dtype=bool)
         for i, p in enumerate(self.parachutes):
             n = len(p.stages)
             for k in range(K):
                 kk = min(k, n - 1)  # pad short parachutes by repeating their last stage
-                pre = f"{p.id}.{stage_tag(kk)}"
+                pre = f"{self.chute_prefix[i]}.{stage_tag(kk)}"
                 self.stage_mask[i, k] = k < n
                 for name in gather:
                     key = f"{pre}.{name}"
@@ -339,7 +287,7 @@ class TestModel:
                 if k >= n:  # padded stage: starts after the data end, never active
                     gather["start"][i, k] = -2
         self._gather = gather
-        self._cds_o_index = np.array([self.index[f"{p.id}.cds_o"] for p in self.parachutes])
+        self._cds_o_index = np.array([self.index[f"{prefix}.cds_o"] for prefix in self.chute_prefix])
         # The same gather for the fused kernel, which never reads padded stages.
         stacked = np.stack(list(gather.values()))
         self._gather_array = np.where(stacked < 0, constants["zero"], stacked).astype(np.int64)
@@ -348,8 +296,9 @@ class TestModel:
                                        ("vehicle_weight", "vehicle_cds", "noise_acc", "load_scale", "noise_lc")],
                                       dtype=np.int64)
         # Columns of each parachute's consecutive stage starts, for the prior's ordering check.
-        pairs = [(gather["start"][i, k], gather["start"][i, k + 1])
-                 for i, n in enumerate(self.stages_per_chute) for k in range(n - 1)]
+        # (A composite group's parachutes share their columns: each pair once.)
+        pairs = list(dict.fromkeys((int(gather["start"][i, k]), int(gather["start"][i, k + 1]))
+                                   for i, n in enumerate(self.stages_per_chute) for k in range(n - 1)))
         self._start_order = tuple(np.ascontiguousarray(a) for a in np.array(pairs, dtype=np.int64).reshape(-1, 2).T)
 
     def gather_stages(self, theta):
@@ -565,7 +514,7 @@ class TestModel:
         theta = np.ascontiguousarray(theta, dtype=float)
         obs = self.obs          # read per call: checks and tests swap in edited observations
         quad = np.empty(theta.shape[0])
-        _baseline_quadratic_form(
+        baseline_quadratic_form(
             theta, self._constants, self._gather_array, self._cds_o_index, self.diameter,
             self.stages_per_chute, self.decay == "linear", obs.native_time, obs.native_airspeed,
             obs.time, obs.acc, obs.lc, obs.lc_weight_term, obs.lc_index, self._scalar_index,
@@ -592,14 +541,24 @@ class TestModel:
     # -- derived quantities ------------------------------------------------------
 
     def derived(self, theta):
-        """Per-stage derived quantities {name: (B,)}: n (Eq. 18), eps, cds, t_f, t_fp."""
+        """Per-stage derived quantities {name: (B,)}: n (Eq. 18), eps, cds, t_f, t_fp.
+
+        In the composite form also each parachute's view of its group's parameters
+        (``<chute>.cds_o``, ``<chute>.s<k>.start``, ...), under the individual form's names.
+        """
         theta = np.atleast_2d(theta)
         stage = self.gather_stages(theta)
         _, timing = self.drag_areas(stage, self.obs.time[:1])
         out = {}
         for i, p in enumerate(self.parachutes):
+            if p.id != self.chute_prefix[i]:
+                out[f"{p.id}.cds_o"] = stage["cds_o"][:, i]
             for k in range(len(p.stages)):
                 pre = f"{p.id}.{stage_tag(k)}"
+                for name in _STAGE_FIELDS[:5]:
+                    tied = self.parameter_name(i, f"{stage_tag(k)}.{name}")
+                    if tied is not None and tied != f"{pre}.{name}":
+                        out[f"{pre}.{name}"] = theta[:, self.index[tied]]
                 out[f"{pre}.n"] = timing.n[:, i, k]
                 out[f"{pre}.eps"] = stage["eps"][:, i, k]
                 out[f"{pre}.cds"] = stage["cds_stage"][:, i, k]

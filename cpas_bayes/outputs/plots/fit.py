@@ -291,12 +291,19 @@ def plot_corner(values, names, labels, title, max_points=2500, rng=None):
 
 
 def corner_groups(fit):
-    """[(chute id, stage k (1-based), [parameter names])] of each parachute stage."""
-    out = []
-    for p in fit.model.parachutes:
+    """[(chute id, stage k (1-based), [parameter names])] of each parachute stage.
+
+    A composite cluster's parachutes share their parameters: their group's stage once,
+    under the first parachute's id.
+    """
+    out, seen = [], set()
+    model = fit.model
+    for i, p in enumerate(model.parachutes):
         for k in range(1, len(p.stages) + 1):
-            names = [f"{p.id}.s{k}.{f}" for f in CORNER_FIELDS if f"{p.id}.s{k}.{f}" in fit.model.index]
-            out.append((p.id, k, names))
+            names = [n for n in (model.parameter_name(i, f"s{k}.{f}") for f in CORNER_FIELDS) if n is not None]
+            if tuple(names) not in seen:
+                seen.add(tuple(names))
+                out.append((p.id, k, names))
     return out
 
 
