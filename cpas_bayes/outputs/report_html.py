@@ -21,6 +21,8 @@ import re
 from pathlib import Path
 from urllib.parse import quote
 
+from cpas_bayes.core.inputs import inside
+
 UNEXPLAINED = "unexplained"
 VERDICTS = ("none", "named", UNEXPLAINED)
 BADGE = {"none": "no misfit", "named": "named cause", UNEXPLAINED: "unexplained", None: "not diagnosed"}
@@ -166,7 +168,7 @@ def test_overview(out, manifest):
     out = Path(out)
     records = []
     for i, name in enumerate(manifest.get("tests", [])):
-        base = out / "tests" / name
+        base = inside(out / "tests", name)
         diag = read_doc(base / "diagnosis" / "diagnosis.json")
         causes = causes_of(diag, manifest.get("causes", {}).get(name))
         verdict = verdict_of(causes, diag)
