@@ -89,8 +89,9 @@ def test_a_campaign_runs_reruns_in_seconds_and_grows_by_one_fit(tmp_path):
     assert len(names) == 3
     causes = manifest["causes"]
     lag_test = next(n for n in names if "sensor_lag" in n)
-    assert causes[lag_test] == "sensor_lag"
-    assert all(c == "none" for n, c in causes.items() if n != lag_test)
+    assert causes[lag_test] == ["sensor_lag"]
+    assert all(c == [] for n, c in causes.items() if n != lag_test)
+    assert manifest["verdicts"][lag_test] == "named" and manifest["flags"] == {n: [] for n in names}
     # the lag test enters the memo with its extended fit
     assert manifest["pooled_fits"][lag_test].endswith("diagnosis/extended")
     assert (out / "memo" / "memo.toml").is_file()

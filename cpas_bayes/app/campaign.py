@@ -7,7 +7,9 @@
 3. pool the fits by parachute kind and stage into the memo (the fit of a test
    whose diagnosis names a *measurement* cause — friction drift, sensor lag —
    is replaced by its extended fit, whose inflation parameters are free of it;
-   physical causes the Monte Carlo does not fly are reported, not pooled away);
+   physical causes the Monte Carlo does not fly are reported, not pooled away;
+   a test with an ``unexplained`` misfit is pooled as it is and flagged in
+   the manifest's ``flags`` and the report);
 4. per cluster configuration: Monte Carlo with n_p dispersed and the n_p vs n
    fill-time comparison; per test: the load comparison (memo and own fit);
 5. the report (:mod:`cpas_bayes.outputs.report`).
@@ -259,7 +261,7 @@ def _diagnose_work(test, reduced, config, fit_folder, echo, executor=None):
                                   sampler=replace(DIAGNOSIS_SAMPLER, workers=config.workers, progress=False))
         d = diagnose_test(test, options, reduction=reduced(), baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
         write_diagnosis(d, tmp)
-        if d.cause != "none":
+        if d.cause in d.candidates:  # a catalogued term named ("none" and "unexplained" have no fit)
             named = d.candidates[d.cause].fit
             ext = tmp / "extended"
             save_datatree(named.tree, ext / POSTERIOR_NAME)
@@ -347,31 +349,86 @@ def _collect(results, records, echo):
 class CampaignResult:
     out: Path
     tests: list
-    causes: dict
+    causes: dict                # test → list of causes ([] none; None without a diagnosis)
+    flags: dict = field(default_factory=dict)   # test → pool_flags codes
     steps: list = field(default_factory=list)
     report: Path | None = None
     seconds: float = 0.0
 
 
-def diagnosed_cause(out, test_name):
-    """The cause named in a test's ``diagnosis.json`` (None without a diagnosis); refuses a damaged file."""
+UNEXPLAINED = "unexplained"
+
+
+def diagnosed_causes(out, test_name):
+    """The causes a test's ``diagnosis.json`` names, in its order (None without a diagnosis; [] for none).
+
+    Reads the key ``causes`` (a list of catalogued terms, possibly followed by
+    ``"unexplained"``, or ``"unexplained"`` alone); a file written before that key
+    existed gives ``[cause]``, or [] for ``"none"``. Refuses a damaged file or a
+    name that is neither a catalogued term nor ``"unexplained"``.
+    """
     diag = test_folder(out, test_name, "diagnosis")
     doc = diag / "diagnosis.json"
     if not doc.is_file():
         return None
-    cause = read_json(doc, f"delete {diag} and re-run the campaign", what="diagnosis").get("cause")
-    if cause != "none" and cause not in EXTENSIONS:
-        raise InputError(doc, "key 'cause'", f"{cause!r:.40} is not 'none' or an extension",
-                         f"delete {diag} and re-run the campaign")
-    return cause
+    fix = f"delete {diag} and re-run the campaign"
+    data = read_json(doc, fix, what="diagnosis")
+    if not isinstance(data, dict):
+        raise InputError(doc, "", "not a JSON object", fix)
+    if "causes" in data and data["causes"] is not None:
+        key, causes = "causes", data["causes"]
+        if not isinstance(causes, list) or not all(isinstance(c, str) for c in causes):
+            raise InputError(doc, "key 'causes'", "not a list of names", fix)
+    else:
+        key, cause = "cause", data.get("cause")
+        causes = [] if cause == "none" else [cause]
+    for cause in causes:
+        if cause != UNEXPLAINED and cause not in EXTENSIONS:
+            raise InputError(doc, f"key {key!r}", f"{cause!r:.40} is not 'none', 'unexplained' or a catalogued "
+                             f"term ({', '.join(EXTENSIONS)})", fix)
+    return list(causes)
+
+
+def verdict_of(causes):
+    """``"none"``, ``"named"`` (a catalogued term among the causes) or ``"unexplained"``; None without a diagnosis."""
+    if causes is None:
+        return None
+    if any(c != UNEXPLAINED for c in causes):
+        return "named"
+    return UNEXPLAINED if causes else "none"
+
+
+def diagnosed_cause(out, test_name):
+    """The first cause a test's ``diagnosis.json`` names, ``'none'`` for none (None without a diagnosis)."""
+    causes = diagnosed_causes(out, test_name)
+    return None if causes is None else (causes[0] if causes else "none")
 
 
 def pooled_fit_folder(out, test_name):
     """The fit a test contributes to the memo: its extended fit when a measurement cause was named."""
     diag = test_folder(out, test_name, "diagnosis")
-    if diagnosed_cause(out, test_name) in MEASUREMENT_CAUSES and (diag / "extended").is_dir():
+    causes = diagnosed_causes(out, test_name) or []
+    if any(c in MEASUREMENT_CAUSES for c in causes) and (diag / "extended").is_dir():
         return diag / "extended"
     return test_folder(out, test_name, "fit")
+
+
+def pool_flags(out, test_name):
+    """Why a test's contribution to the memo deserves a second look: a list of short codes ([] for none).
+
+    ``"unexplained"``: the diagnosis found a misfit no catalogued term explains, so
+    the pooled fit (baseline, or extended for a measurement cause) still carries it;
+    ``"no_extended_fit"``: a measurement cause was named but no extended fit was
+    written, so the baseline fit was pooled.
+    """
+    causes = diagnosed_causes(out, test_name) or []
+    flags = []
+    if UNEXPLAINED in causes:
+        flags.append("unexplained")
+    if (any(c in MEASUREMENT_CAUSES for c in causes)
+            and not (test_folder(out, test_name, "diagnosis", "extended")).is_dir()):
+        flags.append("no_extended_fit")
+    return flags
 
 
 def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=print,
@@ -430,7 +487,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     else:  # fewer tests than workers: one test at a time, each fit's ensembles side by side
         results = [_test_task(job, echo, executor) for job in jobs]
     _collect(results, records, echo)
-    causes = {test.name: diagnosed_cause(out, test.name) for test in tests}
+    causes = {test.name: diagnosed_causes(out, test.name) for test in tests}
+    flags = {test.name: pool_flags(out, test.name) for test in tests}
 
     pool_sources = {t.name: pooled_fit_folder(out, t.name) for t in tests}
     pool_key = _digest(sorted(fit_keys.items()), sorted(diag_keys.items()), config.pool_draws, config.seed)
@@ -460,10 +518,11 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     manifest = {"campaign": config.name or Path(folder).name, "folder": str(folder), "version": __version__,
                 "config": options, "tests": [t.name for t in tests],
                 "configurations": {k: v[1].name for k, v in configs.items()},
-                "causes": causes, "pooled_fits": {k: str(v.relative_to(out)) for k, v in pool_sources.items()},
+                "causes": causes, "verdicts": {k: verdict_of(v) for k, v in causes.items()},
+                "flags": flags, "pooled_fits": {k: str(v.relative_to(out)) for k, v in pool_sources.items()},
                 "steps": [asdict(r) for r in records], "seconds": seconds}
     write_json(out / "campaign.json", manifest)
     report = write_report(out)
     echo(f"report: {report}")
-    return CampaignResult(out=out, tests=[t.name for t in tests], causes=causes, steps=records, report=report,
-                          seconds=_time.perf_counter() - started)
+    return CampaignResult(out=out, tests=[t.name for t in tests], causes=causes, flags=flags, steps=records,
+                          report=report, seconds=_time.perf_counter() - started)

@@ -459,7 +459,7 @@ def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode
     ran = sum(s.status == "ran" for s in result.steps)
     click.echo(f"{len(result.tests)} tests, {ran} steps run, {len(result.steps) - ran} kept, "
                f"{result.seconds:.0f} s; causes: "
-               + ", ".join(f"{t} {c}" for t, c in result.causes.items() if c not in (None, "none")) or "none")
+               + (", ".join(f"{t} {' + '.join(c)}" for t, c in result.causes.items() if c) or "none"))
 
 
 # -- commands added by later capabilities go above this line --

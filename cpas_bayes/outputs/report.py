@@ -1,5 +1,11 @@
 """The campaign report: ``report.md`` and a self-contained ``index.html`` beside the figures.
 
+It opens on a first screen (:mod:`cpas_bayes.outputs.report_html`): each test's
+verdict, what the simulation gets wrong and where, what the memo pooled and
+flagged, and its peak loads against the prediction; then the diagnoses, the
+memo, the Monte Carlo, the load comparisons, convergence and each test's
+section (anchored ``test-1``, ``test-2``, … in the manifest's order).
+
 Built only from the files a campaign wrote (:mod:`cpas_bayes.app.campaign`), so it
 can be rebuilt at any time (``write_report(OUT)``) and never recomputes
 anything. Figures are referenced by relative path: the report folder can be
@@ -8,13 +14,13 @@ moved or zipped whole and opened without a network.
 
 from __future__ import annotations
 
-import html
 import json
-import re
 from pathlib import Path
 
 from cpas_bayes.core.files import write_text
 from cpas_bayes.core.inputs import inside
+from cpas_bayes.outputs.report_html import (BADGE, first_screen_html, first_screen_markdown, html_page, markdown_body,
+                                            test_overview)
 
 FORCE = {"US": "lbf", "SI": "N"}
 
@@ -33,31 +39,30 @@ def _fmt(v, digits=3):
     return "—" if v is None else f"{v:.{digits}g}"
 
 
-def _summary_section(out, manifest):
-    causes = manifest.get("causes", {})
-    lines = [f"# Campaign report: {manifest['campaign']}", "",
-             f"{len(manifest['tests'])} flight tests from `{manifest['folder']}`, cpas_bayes {manifest['version']}; "
-             f"this run took {manifest['seconds']:.0f} s "
-             f"({sum(s['status'] == 'cached' for s in manifest['steps'])} of {len(manifest['steps'])} steps "
-             "unchanged since the last run and kept).", "",
-             "Read it in this order: the **diagnoses** (does the simulation miss anything, test by test?), the "
+def _summary_section(out, manifest, records):
+    lines = ["Read it in this order: the **diagnoses** (does the simulation miss anything, test by test?), the "
              "**memo** (the pooled dispersions a Monte Carlo draws from), the **Monte Carlo** (n_p against n "
              "dispersion; predicted peak loads), the **load comparisons** (would the memo have predicted each "
              "test?), then each test's evidence.", "",
              "## Diagnoses", "",
-             "| test | configuration | cause | in words |", "|---|---|---|---|"]
-    for name in manifest["tests"]:
-        chutes = (_read(inside(out / "tests", name) / "fit" / "summary.json") or {}).get("parachutes", {})
+             "| test | configuration | verdict | causes | pooled fit | the diagnosis's first reason |",
+             "|---|---|---|---|---|---|"]
+    for r in records:
+        chutes = (_read(inside(out / "tests", r["name"]) / "fit" / "summary.json") or {}).get("parachutes", {})
         kinds = " + ".join(sorted({p["kind"] for p in chutes.values()}))
-        d = _read(inside(out / "tests", name) / "diagnosis" / "diagnosis.json")
-        cause = causes.get(name)
+        d = _read(inside(out / "tests", r["name"]) / "diagnosis" / "diagnosis.json")
         words = "diagnosis off" if d is None else (d["reasons"][0] if d.get("reasons") else "")
-        lines.append(f"| {name} | {len(chutes)} × {kinds} | **{cause or '—'}** | {words} |")
-    named = [n for n, c in causes.items() if c and c != "none"]
-    lines += ["", (f"Named causes in {len(named)} test(s): " + ", ".join(f"{n} ({causes[n]})" for n in named)
+        causes = "—" if r["causes"] is None else (" + ".join(r["causes"]) or "none")
+        pooled = (r["pooled"] or "—") + (" (flagged)" if r["flags"] else "")
+        lines.append(f"| {r['name']} | {len(chutes)} × {kinds} | **{BADGE[r['verdict']]}** | {causes} | {pooled} "
+                     f"| {words} |")
+    named = [r for r in records if r["verdict"] not in (None, "none")]
+    lines += ["", (f"Causes in {len(named)} test(s): " + ", ".join(f"{r['name']} ({' + '.join(r['causes'])})"
+                                                             for r in named)
                    + ". Tests with a measurement cause (friction drift, sensor lag) enter the memo with their "
-                     "extended fit; see each test's diagnosis below.") if named else
-              "No test shows a physical cause the baseline simulation misses.", ""]
+                     "extended fit; tests with an unexplained misfit enter it as they are, flagged; see each "
+                     "test's diagnosis below.") if named else
+              "No test shows a cause the baseline simulation misses.", ""]
     return lines
 
 
@@ -137,9 +142,9 @@ def _comparison_section(out, manifest):
     return lines + [""]
 
 
-def _test_section(out, name):
+def _test_section(out, name, anchor):
     base = inside(out / "tests", name)
-    lines = [f"## Test {name}", "", "### Reduction (accelerometer against scaled load cells)", "",
+    lines = [f'<a id="{anchor}"></a>', f"## Test {name}", "", "### Reduction (accelerometer against scaled load cells)", "",
              _img(out, base / "reduction" / "reduction.png", f"{name} reduction"), "",
              "### Posterior bands over the data", "", _img(out, base / "fit" / "bands.png", f"{name} bands"),
              _img(out, base / "fit" / "loads.png", f"{name} loads"), "", "### Corner plots", ""]
@@ -152,90 +157,58 @@ def _test_section(out, name):
     if diag.is_file():
         text = diag.read_text(encoding="utf-8").splitlines()
         lines += ["### Diagnosis", ""] + [("###" + ln) if ln.startswith("#") else ln for ln in text[1:]]
-        for fig in ("screen.png", "elpd.png", "residuals.png", "comparison.png"):
+        for fig in ("screen.png", "elpd.png", "discrepancy.png", "residuals.png", "comparison.png"):
             if (base / "diagnosis" / fig).is_file():
                 lines.append(_img(out, base / "diagnosis" / fig, f"{name} diagnosis {fig[:-4]}"))
         lines.append("")
     return lines
 
 
-def report_markdown(out) -> str:
-    """The report of the campaign in folder ``out`` as Markdown."""
-    out = Path(out)
+def _manifest(out):
     manifest = _read(out / "campaign.json")
     if manifest is None:
         raise FileNotFoundError(f"{out / 'campaign.json'}: not a campaign folder (run 'cpas-bayes campaign')")
-    lines = _summary_section(out, manifest)
+    return manifest
+
+
+def _rest_markdown(out, manifest, records):
+    """Everything after the first screen, as Markdown lines."""
+    lines = _summary_section(out, manifest, records)
     lines += _memo_section(out)
     lines += _montecarlo_section(out, manifest)
     lines += _comparison_section(out, manifest)
     lines += _convergence_section(out, manifest)
-    for name in manifest["tests"]:
-        lines += _test_section(out, name)
+    for r in records:
+        lines += _test_section(out, r["name"], r["anchor"])
+    return lines
+
+
+def report_markdown(out) -> str:
+    """The report of the campaign in folder ``out`` as Markdown."""
+    out = Path(out)
+    manifest = _manifest(out)
+    records = test_overview(out, manifest)
+    lines = first_screen_markdown(out, manifest, records) + _rest_markdown(out, manifest, records)
     return "\n".join(lines) + "\n"
+
+
+def report_html(out) -> str:
+    """The report of the campaign in folder ``out`` as one self-contained HTML page (no script, no network)."""
+    out = Path(out)
+    manifest = _manifest(out)
+    records = test_overview(out, manifest)
+    body = first_screen_html(out, manifest, records) + markdown_body("\n".join(_rest_markdown(out, manifest, records)))
+    return html_page(f"Campaign report: {manifest.get('campaign', out.name)}", body)
 
 
 def write_report(out) -> Path:
     """Write ``report.md`` and ``index.html`` into the campaign folder ``out``; return the HTML path."""
     out = Path(out)
-    md = report_markdown(out)
-    write_text(out / "report.md", md)
-    title = md.splitlines()[0].lstrip("# ").strip()
-    write_text(out / "index.html", markdown_to_html(md, title))
+    write_text(out / "report.md", report_markdown(out))
+    write_text(out / "index.html", report_html(out))
     return out / "index.html"
 
 
-# ---------------------------------------------------------------------------
-# a small Markdown subset → HTML
-
-
-def _inline(text):
-    text = html.escape(text)
-    text = re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", text)
-    text = re.sub(r"`(.+?)`", r"<code>\1</code>", text)
-    text = re.sub(r"(?<![\w*])\*(?!\s)(.+?)(?<!\s)\*(?![\w*])", r"<em>\1</em>", text)
-    return text
-
-
 def markdown_to_html(md, title="cpas_bayes report"):
-    """Headings, tables, images, bullet lists, bold/italic/code and paragraphs: enough for the reports."""
-    body, table, items = [], [], []
-
-    def flush():
-        if table:
-            rows = [r for r in table if not set(r.replace("|", "").strip()) <= {"-", " ", ":"}]
-            cells = [[_inline(c.strip()) for c in r.strip().strip("|").split("|")] for r in rows]
-            head = "".join(f"<th>{c}</th>" for c in cells[0])
-            rest = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in cells[1:])
-            body.append(f"<table><tr>{head}</tr>{rest}</table>")
-            table.clear()
-        if items:
-            body.append("<ul>" + "".join(f"<li>{_inline(i)}</li>" for i in items) + "</ul>")
-            items.clear()
-
-    for line in md.splitlines():
-        if line.startswith("|"):
-            table.append(line)
-            continue
-        if line.startswith("- "):
-            items.append(line[2:])
-            continue
-        flush()
-        if line.startswith("#"):
-            level = min(6, len(line) - len(line.lstrip("#")))
-            text = line.lstrip("#").strip()
-            anchor = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")
-            body.append(f"<h{level} id='{anchor}'>{_inline(text)}</h{level}>")
-        elif line.startswith("!["):
-            alt, src = line[2:].split("](", 1)
-            body.append(f"<figure><img src='{html.escape(src.rstrip(')'))}' alt='{html.escape(alt)}' "
-                        f"loading='lazy'><figcaption>{html.escape(alt)}</figcaption></figure>")
-        elif line.strip():
-            body.append(f"<p>{_inline(line)}</p>")
-    flush()
-    style = ("body{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em;line-height:1.4}"
-             "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #bbb;padding:2px 6px;"
-             "font-size:90%}img{max-width:100%}figure{margin:0.5em 0}figcaption{font-size:80%;color:#555}"
-             "code{background:#f3f3f3;padding:0 3px}")
-    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-            f"<style>{style}</style></head><body>{''.join(body)}</body></html>\n")
+    """A Markdown document of the reports' subset as a self-contained HTML page."""
+    return html_page(title, markdown_body(md))
