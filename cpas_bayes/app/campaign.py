@@ -261,13 +261,13 @@ def _diagnose_work(test, reduced, config, fit_folder, echo, executor=None):
                                   sampler=replace(DIAGNOSIS_SAMPLER, workers=config.workers, progress=False))
         d = diagnose_test(test, options, reduction=reduced(), baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
         write_diagnosis(d, tmp)
-        if d.cause in d.candidates:  # a catalogued term named ("none" and "unexplained" have no fit)
-            named = d.candidates[d.cause].fit
+        if d.named_fit is not None:  # the named terms together, without the discrepancy
+            named = d.named_fit.fit
             ext = tmp / "extended"
             save_datatree(named.tree, ext / POSTERIOR_NAME)
             write_summary(ext, build_summary(named.model, named.tree, convergence(named.tree, named.sampling),
                                              named.sampling.options))
-        echo(f"    {test.name}: cause {d.cause}")
+        echo(f"    {test.name}: {d.verdict}: {', '.join(d.causes) or 'none'}")
     return work
 
 

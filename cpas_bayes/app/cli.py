@@ -32,7 +32,7 @@ from cpas_bayes.app.campaign_config import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
 from cpas_bayes.app.options import (BATCH, ENSEMBLES, RUNS, SEED, WORKERS, check_scheduler, out_option,
                                     priors_option, seed_option)
 
-CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing", "correlated_noise")
+CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
 # What Ctrl-C leaves behind, said by the command that is running (see main()).
 _NOTHING_HALF_WRITTEN = ("interrupted; nothing half-written was left (every output is written to a temporary file "
@@ -418,10 +418,14 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
     path = write_diagnosis(diagnosis, out)
     table = diagnosis.versus_baseline.sort_values("elpd_diff", ascending=False)
     for r in table.to_dict("records"):
-        click.echo(f"  {r['name']:<17} elpd gain {r['elpd_diff']:+9.1f} ± {r['elpd_diff_se']:.1f}")
-    click.echo(f"cause: {diagnosis.cause}")
+        click.echo(f"  {r['name']:<40} elpd gain over the baseline {r['elpd_diff']:+9.1f} ± {r['elpd_diff_se']:.1f}")
+    for form in diagnosis.model_forms:
+        click.echo(f"  model form ({form['comparison']}): {form['in_words']}")
+    click.echo(f"verdict: {diagnosis.verdict}; causes: {', '.join(diagnosis.causes) or 'none'}")
     for reason in diagnosis.reasons:
         click.echo(f"  - {reason}")
+    for warning in diagnosis.warnings:
+        click.echo(f"  ! {warning}")
     click.echo(f"wrote {path}, {out / 'diagnosis.md'} and the figures")
 
 
