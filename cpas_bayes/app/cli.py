@@ -177,22 +177,47 @@ def reduce_command(bundle, out, scale, windows):
         click.echo(f"wrote {path}")
 
 
+def _effect_name(ctx, param, value):
+    """--effect: one name of ALL_EFFECTS or two joined by '+', checked here."""
+    from cpas_bayes.data.synth_effects import effect_components
+
+    try:
+        effect_components(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+    return value
+
+
 @cli.command("synth")
 @click.option("--scenario", type=click.Choice(["drogue", "main"]), required=True,
               help="Scenario library entry: two Drogues (infinite mass) or three Mains (finite mass).")
-@click.option("--effect", type=click.Choice(["none", "added_mass", "friction_drift", "sensor_lag",
-                                             "canopy_breathing"]), default="none", show_default=True,
-              help="Hidden effect to put in the data (at most one).")
-@click.option("--magnitude", type=float, default=None,
-              help="Effect size (k_a; friction drop; lag in s; breathing amplitude). Drawn from the seed if omitted.")
+@click.option("--effect", default="none", show_default=True, callback=_effect_name,
+              help="Hidden effect to put in the data: none; catalogued: added_mass, friction_drift, sensor_lag, "
+                   "canopy_breathing; outside the catalogue: pitot_lag, accelerometer_clipping, riser_ringing, "
+                   "load_cell_tare_shift; form variant: added_mass_form; or two joined by '+' "
+                   "(e.g. sensor_lag+canopy_breathing).")
+@click.option("--magnitude", type=float, multiple=True,
+              help="Effect size (k_a; friction drop; lag in s; breathing amplitude; see cpas_bayes.data.synth_effects "
+                   "for the others). Drawn from the seed if omitted; a pair takes it twice, in the pair's order.")
 @click.option("--seed", type=SEED, required=True, help="Seed of the truth, the effect size and the noise.")
 @out_option("Bundle folder to write.", required=True)
 def synth_command(scenario, effect, magnitude, seed, out):
     """Simulate a synthetic flight test with known truth and write it as a bundle with truth.json."""
     from cpas_bayes.data.synth import magnitude_problem, write_synthetic
+    from cpas_bayes.data.synth_effects import is_pair
 
-    if magnitude is not None and effect == "none":
+    if magnitude and effect == "none":
         raise click.BadParameter("a magnitude needs an effect other than 'none'", param_hint="--magnitude")
+    if not magnitude:
+        magnitude = None
+    elif is_pair(effect):
+        if len(magnitude) != 2:
+            raise click.BadParameter(f"a pair takes --magnitude twice or not at all, got {len(magnitude)}",
+                                     param_hint="--magnitude")
+    elif len(magnitude) != 1:
+        raise click.BadParameter(f"one effect takes one --magnitude, got {len(magnitude)}", param_hint="--magnitude")
+    else:
+        magnitude = magnitude[0]
     if magnitude is not None and magnitude_problem(effect, magnitude):
         raise click.BadParameter(magnitude_problem(effect, magnitude), param_hint="--magnitude")
     try:

@@ -31,8 +31,11 @@ Measurement model (that of the example bundles)
   (their stated sigmas); stated stage starts are the true starts plus
   N(0, 0.10 s) (first stage) or N(0, 0.05 s) (later stages).
 
-Hidden effects, at most one per test, each with a magnitude
------------------------------------------------------------
+Hidden effects of the catalogue (the diagnosis' causes), each with a magnitude
+-----------------------------------------------------------------------------
+:mod:`cpas_bayes.data.synth_effects` (``ALL_EFFECTS``) adds effects outside it, a
+form variant of added mass and pairs ``"a+b"``; every function here takes them.
+
 ============== ===================================== ==================== =================
 effect         what                                  magnitude            drawn range
 ============== ===================================== ==================== =================
@@ -70,6 +73,7 @@ import numpy as np
 import pandas as pd
 
 from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle, write_bundle
+from cpas_bayes.data import synth_effects as fx
 from cpas_bayes.physics.effects import friction_scale, lagged
 from cpas_bayes.physics.inflation import n_from_n_p, overinflation_ratio
 from cpas_bayes.physics.trajectory import (BreathingParameters, ClusterParameters, SimulationOptions, TrajectoryResult,
@@ -77,7 +81,7 @@ from cpas_bayes.physics.trajectory import (BreathingParameters, ClusterParameter
 from cpas_bayes.core.units import unit_system
 
 SCENARIOS = ("drogue", "main")
-EFFECTS = ("none", "added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
+EFFECTS = ("none", "added_mass", "friction_drift", "sensor_lag", "canopy_breathing")  # the catalogue
 SAMPLE_INTERVAL = 0.01  # s, 100 Hz as in the example bundles
 US = unit_system("US")
 
@@ -257,17 +261,25 @@ def draw_effect_params(effect: str, scenario: str, rng: np.random.Generator, mag
     Returned dicts hold ``magnitude`` and the effect's own parameters, in
     seconds or dimensionless (the same in every unit system). The friction
     ramp's times are filled in by :func:`simulate_test` from the stage starts.
+    A pair ``"a+b"`` takes None or two magnitudes (each None or a number) and
+    returns ``{a: params, b: params}``, drawn in that order.
     """
-    if effect not in EFFECTS:
-        raise ValueError(f"unknown effect {effect!r}; use one of {', '.join(EFFECTS)}")
-    _scenario(scenario)
+    names = fx.effect_components(effect)
+    spec = _scenario(scenario)
+    if len(names) == 2:
+        sizes = (None, None) if magnitude is None else tuple(magnitude)
+        if len(sizes) != 2:
+            raise ValueError(f"a pair's magnitude is two values (each may be None), got {magnitude!r}")
+        return {n: draw_effect_params(n, scenario, rng, m) for n, m in zip(names, sizes)}
     if effect == "none":
         return {}
-    low, high = EFFECT_MAGNITUDE_RANGE[effect]
+    low, high = (EFFECT_MAGNITUDE_RANGE if effect in EFFECT_MAGNITUDE_RANGE else fx.HIDDEN_MAGNITUDE_RANGE)[effect]
     value = float(rng.uniform(low, high)) if magnitude is None else float(magnitude)
     problem = magnitude_problem(effect, value)
     if problem:
         raise ValueError(problem)
+    if effect in fx.HIDDEN_EFFECTS:
+        return fx.draw_hidden_params(effect, rng, value, len(spec["ids"]), len(spec["labels"]))
     if effect == "added_mass":
         return {"magnitude": value, "k_a": value}
     if effect == "friction_drift":
@@ -284,6 +296,10 @@ def magnitude_problem(effect: str, value) -> str | None:
     """Why ``value`` cannot be the magnitude of ``effect`` (a sentence), or None."""
     if effect == "none":
         return "a magnitude needs an effect other than 'none'"
+    if fx.PAIR_SEPARATOR in effect:
+        return fx.pair_magnitude_problem(effect, value, magnitude_problem)
+    if effect in fx.HIDDEN_EFFECTS:
+        return fx.hidden_magnitude_problem(effect, value)
     low, high, low_in, high_in, what = EFFECT_MAGNITUDE_LIMITS[effect]
     try:
         value = float(value)
@@ -297,13 +313,29 @@ def magnitude_problem(effect: str, value) -> str | None:
 
 
 def simulation_options(effect: str, effect_params: dict) -> SimulationOptions:
-    """Integration options that put a dynamic effect (added mass, breathing) in the dynamics."""
-    if effect == "added_mass":
-        return SimulationOptions(added_mass_k=effect_params["k_a"])
-    if effect == "canopy_breathing":
-        return SimulationOptions(breathing=BreathingParameters(
-            effect_params["amplitude"], effect_params["frequency_hz"], effect_params["damping_ratio"]))
-    return SimulationOptions()
+    """Integration options that put the dynamic effects (added mass in either form, breathing) in the dynamics."""
+    parts = fx.effect_parts(effect, effect_params)
+    fields = {}
+    if "added_mass" in parts:
+        fields["added_mass_k"] = parts["added_mass"]["k_a"]
+    if "added_mass_form" in parts:
+        fields.update(fx.added_mass_form_options(parts["added_mass_form"]))
+    if "canopy_breathing" in parts:
+        b = parts["canopy_breathing"]
+        fields["breathing"] = BreathingParameters(b["amplitude"], b["frequency_hz"], b["damping_ratio"])
+    return SimulationOptions(**fields)
+
+
+def _complete_params(truth: SyntheticTruth, result: TrajectoryResult, parts: dict) -> None:
+    """Fill in, in place, what effects take from the truth and the simulation (friction ramp, ceiling, tare)."""
+    if "friction_drift" in parts and "scale_start" not in parts["friction_drift"]:
+        parts["friction_drift"].update(_friction_ramp(truth, parts["friction_drift"]["magnitude"]))
+    fx.complete_hidden_params(parts, result.load_factor[0].max(), result.peak_tension[0], _stage_starts(truth),
+                           [c.id for c in truth.chutes], truth.load_scale, US.si(1.0, "force"))
+
+
+def _stage_starts(truth):  # (P, K) s
+    return np.array([[s.start for s in c.stages] for c in truth.chutes])
 
 
 def simulate_truth(truth: SyntheticTruth, effect: str = "none", effect_params=None) -> TrajectoryResult:
@@ -355,17 +387,20 @@ def load_cell_readings(truth: SyntheticTruth, result: TrajectoryResult, effect: 
     """Noise-free load-cell readings (P, T), N: F_i / (s(t)·cos θ_i), delayed under ``sensor_lag``.
 
     ``effect_params`` of ``friction_drift`` must hold the ramp (see
-    :func:`simulate_test`); ``theta_deg`` (P, T) or 0.
+    :func:`simulate_test`), those of a tare shift its ``shift_lbf``;
+    ``theta_deg`` (P, T) or 0. Ringing and a tare shift come before the delay.
     """
+    parts = fx.effect_parts(effect, effect_params)
     time = result.time
-    if effect == "friction_drift":
-        scale = friction_scale(time, effect_params["scale_start"], effect_params["scale_end"],
-                               effect_params["t_start"], effect_params["t_end"])
+    if "friction_drift" in parts:
+        f = parts["friction_drift"]
+        scale = friction_scale(time, f["scale_start"], f["scale_end"], f["t_start"], f["t_end"])
     else:
         scale = np.full(len(time), truth.load_scale)
     reading = result.tension[0] / (scale * np.cos(np.radians(theta_deg)))
-    if effect == "sensor_lag":
-        reading = lagged(time, reading, effect_params["lag"])
+    reading = fx.hidden_load_cell_readings(time, reading, _stage_starts(truth), parts, US.si(1.0, "force"))
+    if "sensor_lag" in parts:
+        reading = lagged(time, reading, parts["sensor_lag"]["lag"])
     return reading
 
 
@@ -388,13 +423,13 @@ def noise_free_drag_areas(truth: SyntheticTruth, effect: str, effect_params: dic
     drift or a lag shows up there and nowhere else. ``result`` may pass a
     trajectory already simulated for this truth and effect.
     """
-    effect_params = dict(effect_params or {})
-    if effect == "friction_drift" and "scale_start" not in effect_params:
-        effect_params.update(_friction_ramp(truth, effect_params["magnitude"]))
+    parts = fx.effect_parts(effect, effect_params)
     if result is None:
         result = simulate_truth(truth, effect, effect_params)
-    reading = load_cell_readings(truth, result, effect, effect_params, 0.0)
-    qbar, load_factor = result.qbar[0], result.load_factor[0]
+    _complete_params(truth, result, parts)
+    reading = load_cell_readings(truth, result, effect, fx.document_params(effect, parts), 0.0)
+    qbar = fx.recorded_air_data(result.time, result.qbar[0], result.airspeed[0], result.density[0], parts)[0]
+    load_factor = fx.recorded_load_factor(result.load_factor[0], parts)
     accelerometer = result.total_weight[0] * load_factor / qbar - result.vehicle_cds[0]
     load_cells = (truth.load_scale * reading + result.parachute_weight[0][:, None] * load_factor) / qbar
     return ChannelDragAreas(result.time, accelerometer, load_cells, result.cds[0])
@@ -412,7 +447,9 @@ def truth_document(truth: SyntheticTruth, result: TrajectoryResult, effect: str,
                            "cds_end": US.from_si(s.eps * c.cds_o, "area")})
         chutes.append({"id": c.id, "cds_o": US.from_si(c.cds_o, "area"), "stages": stages,
                        "peak_load": US.from_si(float(result.peak_tension[0, j]), "force")})
-    return {"effect": effect, "effect_params": dict(effect_params), "load_scale": load_scale,
+    causes, parts = fx.causes_of(effect), fx.effect_parts(effect, effect_params)
+    return {"effect": effect, "effect_params": dict(effect_params), "effects": parts,
+            "cause": fx.PAIR_SEPARATOR.join(causes) or "none", "causes": causes, "load_scale": load_scale,
             "vehicle_weight": US.from_si(truth.vehicle_weight, "force"),
             "vehicle_cds": US.from_si(truth.vehicle_cds, "area"),
             "chutes": chutes, "peak_total_load": US.from_si(float(result.peak_total_tension[0]), "force")}
@@ -425,12 +462,10 @@ def simulate_test(truth: SyntheticTruth, effect: str, effect_params: dict, rng: 
     ``rng`` supplies every measurement-noise draw, in an order that does not
     depend on ``effect``.
     """
-    if effect not in EFFECTS:
-        raise ValueError(f"unknown effect {effect!r}; use one of {', '.join(EFFECTS)}")
-    effect_params = dict(effect_params or {})
-    if effect == "friction_drift":
-        effect_params.update(_friction_ramp(truth, effect_params["magnitude"]))
+    parts = fx.effect_parts(effect, effect_params)
     result = simulate_truth(truth, effect, effect_params)
+    _complete_params(truth, result, parts)
+    effect_params = fx.document_params(effect, parts)
     time = result.time
     n = len(time)
     # Fly-out angles are measured on the Mains (photogrammetry of the big canopies).
@@ -448,10 +483,11 @@ def simulate_test(truth: SyntheticTruth, effect: str, effect_params: dict, rng: 
     airspeed_noise = US.si(rng.normal(0.0, AIRSPEED_SIGMA_FPS, size=n), "speed")
     load_noise = rng.normal(0.0, 1.0, size=(len(truth.chutes), n))
 
-    qbar = result.qbar[0] * (1.0 + qbar_noise)
-    data = {"time": time, "G": result.load_factor[0] + g_noise, "G_sigma": np.full(n, G_SIGMA),
-            "qbar": qbar, "qbar_sigma": QBAR_RELATIVE_SIGMA * np.abs(qbar),
-            "airspeed": result.airspeed[0] + airspeed_noise,
+    air_qbar, air_speed = fx.recorded_air_data(time, result.qbar[0], result.airspeed[0], result.density[0], parts)
+    qbar = air_qbar * (1.0 + qbar_noise)
+    data = {"time": time, "G": fx.recorded_load_factor(result.load_factor[0] + g_noise, parts),
+            "G_sigma": np.full(n, G_SIGMA), "qbar": qbar, "qbar_sigma": QBAR_RELATIVE_SIGMA * np.abs(qbar),
+            "airspeed": air_speed + airspeed_noise,
             "gamma": np.degrees(result.flight_path_angle[0]),
             "density": result.density[0], "altitude": result.altitude[0]}
 
@@ -477,7 +513,7 @@ def simulate_test(truth: SyntheticTruth, effect: str, effect_params: dict, rng: 
                       cds=stated_cds, cds_sigma=US.si(VEHICLE_CDS_SIGMA_FT2, "area"))
     test = FlightTest(name=name or f"SYN-{truth.scenario}-{effect}", phase=truth.scenario, units=US, vehicle=vehicle,
                       parachutes=tuple(parachutes), data=pd.DataFrame(data))
-    load_scale = effect_params["scale_end"] if effect == "friction_drift" else truth.load_scale
+    load_scale = parts["friction_drift"]["scale_end"] if "friction_drift" in parts else truth.load_scale
     return test, truth_document(truth, result, effect, effect_params, load_scale)
 
 

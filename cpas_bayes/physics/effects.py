@@ -48,6 +48,30 @@ So both reduction channels see the same apparent drag area:
 
 The momentum term raises the apparent drag area while the canopy fills fast
 and lowers it afterwards while the carried air decelerates with the vehicle.
+
+Form variants of added mass (for robustness studies; the simulator's
+``added_mass_exponent`` and ``added_mass_lag``): the volume of a filling
+canopy is not geometrically similar to the open one, so the exponent p of
+the drag area may differ from 3/2; normalised at the full-open drag area
+CDS_o so that k_a keeps its meaning at full open::
+
+    m_a = k_a · ρ · CDS_o^(3/2) · (CDS/CDS_o)^p                  (A1')
+
+and the flow that carries the air may take a moment to establish, so the
+carried mass follows (A1') through a first-order lag, dm_a/dt = (m_a,A1' −
+m_a)/τ_m, and that dm_a/dt enters the momentum term of (A2–A4).
+
+Instrument effects (applied to what a sensor records, not to the dynamics)
+---------------------------------------------------------------------------
+First-order lag of a channel (pneumatic lag of a pitot-static line)::
+
+    τ·dy/dt = x − y,   y(t_0) = x(t_0)                           (I1)
+
+Damped ringing of an elastic load path after an excitation at t_k::
+
+    r(t) = 1 + A·Σ_k exp(−ζ·ω·τ_k)·sin(ω·sqrt(1 − ζ²)·τ_k),  τ_k = t − t_k ≥ 0   (I2)
+
+multiplying the load-cell reading (ω = 2π·f).
 """
 
 from __future__ import annotations
@@ -57,22 +81,44 @@ import numpy as np
 ADDED_MASS_EXPONENT = 1.5  # volume ∝ (area)^(3/2)
 
 
-def added_mass(cds, density, k_a):
+def added_mass(cds, density, k_a, exponent=ADDED_MASS_EXPONENT, reference_cds=None):
     """Eq. A1: enclosed plus apparent air mass m_a = k_a·ρ·CDS^(3/2).
 
     ``cds`` (m²), ``density`` (kg/m³) and ``k_a`` (dimensionless) broadcast
-    together; the result is in kg. Negative drag areas count as zero.
+    together; the result is in kg. Negative drag areas count as zero. An
+    ``exponent`` other than 3/2 is the form variant A1', normalised at
+    ``reference_cds`` (CDS_o, m², required then).
     """
     cds = np.clip(np.asarray(cds, float), 0.0, None)
-    return np.asarray(k_a, float) * np.asarray(density, float) * cds**ADDED_MASS_EXPONENT
+    if exponent == ADDED_MASS_EXPONENT:
+        return np.asarray(k_a, float) * np.asarray(density, float) * cds**ADDED_MASS_EXPONENT
+    reference = _reference_area(reference_cds)
+    return (np.asarray(k_a, float) * np.asarray(density, float) * reference**ADDED_MASS_EXPONENT
+            * (cds / reference)**exponent)
 
 
-def added_mass_rate(cds, cds_rate, density, density_rate, k_a):
-    """dm_a/dt of Eq. A1: k_a·(ρ̇·CDS^(3/2) + (3/2)·ρ·CDS^(1/2)·dCDS/dt), kg/s."""
+def added_mass_rate(cds, cds_rate, density, density_rate, k_a, exponent=ADDED_MASS_EXPONENT, reference_cds=None):
+    """dm_a/dt of Eq. A1: k_a·(ρ̇·CDS^(3/2) + (3/2)·ρ·CDS^(1/2)·dCDS/dt), kg/s (A1' for another exponent)."""
     cds = np.clip(np.asarray(cds, float), 0.0, None)
     k_a = np.asarray(k_a, float)
-    return k_a * (np.asarray(density_rate, float) * cds**ADDED_MASS_EXPONENT
-                  + ADDED_MASS_EXPONENT * np.asarray(density, float) * np.sqrt(cds) * np.asarray(cds_rate, float))
+    if exponent == ADDED_MASS_EXPONENT:
+        return k_a * (np.asarray(density_rate, float) * cds**ADDED_MASS_EXPONENT
+                      + ADDED_MASS_EXPONENT * np.asarray(density, float) * np.sqrt(cds)
+                      * np.asarray(cds_rate, float))
+    reference = _reference_area(reference_cds)
+    ratio = cds / reference
+    return k_a * reference**ADDED_MASS_EXPONENT * (
+        np.asarray(density_rate, float) * ratio**exponent
+        + exponent * np.asarray(density, float) * ratio**(exponent - 1.0) * np.asarray(cds_rate, float) / reference)
+
+
+def _reference_area(reference_cds):
+    if reference_cds is None:
+        raise ValueError("an added-mass exponent other than 3/2 needs reference_cds (CDS_o)")
+    reference = np.asarray(reference_cds, float)
+    if np.any(reference <= 0):
+        raise ValueError("reference_cds must be positive")
+    return reference
 
 
 def added_mass_momentum_rate(mass, mass_rate, airspeed, acceleration):
@@ -179,3 +225,43 @@ def lagged(t, values, lag):
     v_left = np.take_along_axis(values, left, axis=-1)
     v_right = np.take_along_axis(values, right, axis=-1)
     return v_left + weight * (v_right - v_left)
+
+
+def first_order_lag(t, values, tau):
+    """Eq. I1: ``values`` (..., T) seen through a first-order lag of time constant ``tau`` (s, > 0).
+
+    Exact for a channel that is linear between the samples ``t`` (T,):
+    y_{n+1} = x_{n+1} − τ·s_n + (y_n − x_n + τ·s_n)·exp(−Δt/τ), s_n the
+    slope over the step; y starts at the first value (settled before the record).
+    ``tau`` is a scalar or broadcasts with the leading axes of ``values``.
+    """
+    t = np.asarray(t, float)
+    values = np.asarray(values, float)
+    tau = np.asarray(tau, float)
+    if np.any(tau <= 0) or not np.all(np.isfinite(tau)):
+        raise ValueError("tau must be positive and finite")
+    tau = tau[..., None]                                   # (..., 1)
+    dt = np.diff(t)
+    lag_term = tau * np.diff(values, axis=-1) / dt         # τ·s_n, (..., T − 1)
+    decay = np.broadcast_to(np.exp(-dt / tau), lag_term.shape)
+    values = np.broadcast_to(values, lag_term.shape[:-1] + t.shape)
+    out = np.empty(values.shape)
+    out[..., 0] = values[..., 0]
+    for n in range(len(t) - 1):
+        out[..., n + 1] = (values[..., n + 1] - lag_term[..., n]
+                           + (out[..., n] - values[..., n] + lag_term[..., n]) * decay[..., n])
+    return out
+
+
+def load_path_ringing(t, starts, amplitude, frequency_hz, damping_ratio):
+    """Eq. I2: multiplier (..., T) of a load-cell reading ringing after each excitation time.
+
+    ``t`` (T,) s; ``starts`` (..., K) the excitation times (a canopy's stage
+    starts); ``amplitude`` A, ``frequency_hz`` f and ``damping_ratio`` ζ
+    (0 ≤ ζ < 1) scalars or (...,). The same damped sine as
+    :func:`breathing_factor`, started at each excitation and superposed.
+    """
+    starts = np.asarray(starts, float)
+    tau = np.asarray(t, float) - starts[..., None]                        # (..., K, T)
+    params = [np.asarray(v, float)[..., None, None] for v in (amplitude, frequency_hz, damping_ratio)]
+    return 1.0 + (breathing_factor(tau, *params) - 1.0).sum(axis=-2)

@@ -29,6 +29,8 @@ recorded as the integration passes it (starts differ per run and parachute).
 Optional extensions (see :mod:`cpas_bayes.physics.effects` for the equations):
 ``added_mass_k`` adds the enclosed/apparent air mass m_a = k_a·ρ·CDS^(3/2)
 and its momentum term to the dynamics and to G and F_i (Eq. A2–A4);
+``added_mass_exponent`` and ``added_mass_lag`` change its form (Eq. A1', the
+carried mass as an extra state lagging A1'; defaults give Eq. A1 exactly);
 ``breathing`` multiplies every canopy's drag area by a damped oscillation
 excited at each stage's peak drag area (superposed, so the drag area stays
 continuous across disreefs).
@@ -122,6 +124,8 @@ class SimulationOptions:
     decay: str = "linear"            # post-peak decay shape of the stage law
     prf: float = 1.0                 # pressure recovery fraction on the canopies
     added_mass_k: object = None      # k_a, scalar or (B,) or (B, P); None = off
+    added_mass_exponent: float = 1.5  # p of m_a ∝ CDS^p (effects Eq. A1'); 1.5 = Eq. A1
+    added_mass_lag: float = 0.0      # τ_m, s: m_a follows A1' through a first-order lag; 0 = at once
     breathing: BreathingParameters | None = None
     gravity: float = STANDARD_GRAVITY
     density: Callable = field(default=standard_density)  # ρ(h) in kg/m³, vectorised
@@ -236,8 +240,9 @@ def _air_state(density_of, altitude, climb_rate, with_rate):
 class _Dynamics:
     """Right-hand side of the equations of motion and the derived channels."""
 
-    def __init__(self, vehicle_weight, vehicle_cds, parachute_weight, options):
+    def __init__(self, vehicle_weight, vehicle_cds, parachute_weight, options, cds_o):
         self.vehicle_cds = vehicle_cds
+        self.cds_o = cds_o
         self.parachute_weight = parachute_weight
         self.total_weight = vehicle_weight + parachute_weight.sum(axis=-1)
         self.options = options
@@ -246,9 +251,21 @@ class _Dynamics:
             k = np.asarray(options.added_mass_k, float)
             # (B,) per run or (B, P) per parachute
             self.k_a = np.broadcast_to(k[..., None] if k.ndim == 1 else k, parachute_weight.shape)
+        if options.added_mass_lag < 0 or options.added_mass_exponent <= 0:
+            raise ValueError("need added_mass_lag ≥ 0 and added_mass_exponent > 0")
+        # With a lag the carried mass m_a (B, P) is a state of the integration.
+        self.lagged = self.k_a is not None and options.added_mass_lag > 0
 
-    def evaluate(self, airspeed, gamma, altitude, cds, cds_rate):
-        """Derivatives and channels at one time for all runs; cds (B, P)."""
+    def target_mass(self, cds, rho):
+        """Eq. A1 / A1' at the current drag areas (B, P), kg."""
+        return added_mass(cds, rho[:, None], self.k_a, self.options.added_mass_exponent, self.cds_o)
+
+    def initial_mass(self, altitude, cds):
+        """The carried mass at the start when it is a state (settled at A1'), else None."""
+        return self.target_mass(cds, self.options.density(altitude)) if self.lagged else None
+
+    def evaluate(self, airspeed, gamma, altitude, cds, cds_rate, mass=None):
+        """Derivatives and channels at one time for all runs; cds (B, P); ``mass`` the lagged m_a state."""
         g = self.options.gravity
         climb = airspeed * np.sin(gamma)
         rho, rho_rate = _air_state(self.options.density, altitude, climb, self.k_a is not None)
@@ -256,13 +273,18 @@ class _Dynamics:
         drag_area = self.options.prf * cds.sum(axis=-1)
         if self.k_a is None:
             m_a = mass_rate = np.zeros_like(cds)
+        elif self.lagged:
+            m_a = mass
+            mass_rate = (self.target_mass(cds, rho) - mass) / self.options.added_mass_lag
         else:
-            m_a = added_mass(cds, rho[:, None], self.k_a)
-            mass_rate = added_mass_rate(cds, cds_rate, rho[:, None], rho_rate[:, None], self.k_a)
+            m_a = self.target_mass(cds, rho)
+            mass_rate = added_mass_rate(cds, cds_rate, rho[:, None], rho_rate[:, None], self.k_a,
+                                        self.options.added_mass_exponent, self.cds_o)
         accel = added_mass_acceleration(qbar, drag_area, self.vehicle_cds, self.total_weight, gamma, airspeed,
                                         m_a.sum(axis=-1), mass_rate.sum(axis=-1), g)
         gamma_rate = -g * np.clip(np.cos(gamma), 0.0, None) / airspeed
-        return (accel, gamma_rate, climb), dict(density=rho, qbar=qbar, acceleration=accel, added_mass=m_a,
+        rates = (accel, gamma_rate, climb) + ((mass_rate,) if self.lagged else ())
+        return rates, dict(density=rho, qbar=qbar, acceleration=accel, added_mass=m_a,
                                                 mass_rate=mass_rate)
 
     def channels(self, airspeed, gamma, cds, aux):
@@ -355,13 +377,15 @@ def simulate(state0: VehicleState0, vehicle: VehicleProperties, cluster: Cluster
     batch = _batch_shape(state0, vehicle, cluster)
     chutes = _Cluster(cluster, batch, options)
     dynamics = _Dynamics(_as_batched(vehicle.weight, 0, batch), _as_batched(vehicle.cds, 0, batch),
-                         chutes.weight, options)
+                         chutes.weight, options, chutes.cds_o)
     with_rate = dynamics.k_a is not None
 
     n_samples = int(round(duration / options.dt)) + 1
     time = t0 + options.dt * np.arange(n_samples)
     h = options.dt / options.substeps
     n_steps = (n_samples - 1) * options.substeps
+    if dynamics.lagged and options.added_mass_lag < h:  # RK4 would go unstable on the stiff lag
+        raise ValueError(f"added_mass_lag must be 0 or at least the RK4 step {h:g} s (more substeps)")
 
     airspeed = _as_batched(state0.airspeed, 0, batch)
     gamma = _as_batched(state0.flight_path_angle, 0, batch)
@@ -393,8 +417,13 @@ def simulate(state0: VehicleState0, vehicle: VehicleProperties, cluster: Cluster
     cds_now, rate_now, _ = _drag_and_rate(chutes, np.array([t0]), stage_airspeed, with_rate)
     cds_now = cds_now[..., 0]
     rate_now = None if rate_now is None else rate_now[..., 0]
+    mass = dynamics.initial_mass(altitude, cds_now)
+
+    def mass_at(step, k):
+        return None if mass is None else mass + step * k[3]
+
     for n in range(n_steps + 1):
-        k1, aux = dynamics.evaluate(airspeed, gamma, altitude, cds_now, rate_now)
+        k1, aux = dynamics.evaluate(airspeed, gamma, altitude, cds_now, rate_now, mass)
         if n % options.substeps == 0:
             record(n // options.substeps, airspeed, gamma, altitude, cds_now, aux)
         if n == n_steps:
@@ -409,14 +438,16 @@ def simulate(state0: VehicleState0, vehicle: VehicleProperties, cluster: Cluster
         cds_mid, rate_mid = blocks.at(n, "mid")
         cds_end, rate_end = blocks.at(n, "end")
         k2 = dynamics.evaluate(airspeed + h / 2 * k1[0], gamma + h / 2 * k1[1], altitude + h / 2 * k1[2],
-                               cds_mid, rate_mid)[0]
+                               cds_mid, rate_mid, mass_at(h / 2, k1))[0]
         k3 = dynamics.evaluate(airspeed + h / 2 * k2[0], gamma + h / 2 * k2[1], altitude + h / 2 * k2[2],
-                               cds_mid, rate_mid)[0]
+                               cds_mid, rate_mid, mass_at(h / 2, k2))[0]
         k4 = dynamics.evaluate(airspeed + h * k3[0], gamma + h * k3[1], altitude + h * k3[2],
-                               cds_end, rate_end)[0]
+                               cds_end, rate_end, mass_at(h, k3))[0]
         airspeed = airspeed + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
         gamma = np.clip(gamma + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1]), -np.pi / 2, np.pi / 2)
         altitude = altitude + h / 6 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+        if mass is not None:
+            mass = mass + h / 6 * (k1[3] + 2 * k2[3] + 2 * k3[3] + k4[3])
         cds_now, rate_now = cds_end, rate_end
 
     # Stages that never started in the record keep the placeholder V_i.
@@ -458,7 +489,11 @@ def _refined_peaks(out, time, chutes, dynamics, stage_airspeed, with_rate, facto
         cds, rate, _ = _drag_and_rate(chutes, t[:, None, None], stage_airspeed, with_rate)
         cds = cds[..., 0]
         rate = None if rate is None else rate[..., 0]
-        _, aux = dynamics.evaluate(*state, cds, rate)
+        mass = None
+        if dynamics.lagged:  # the carried-mass state, linear between samples
+            weight = np.clip((t - time[i]) / dt, 0.0, 1.0)[:, None]
+            mass = (1 - weight) * out["added_mass"][rows, :, i] + weight * out["added_mass"][rows, :, j]
+        _, aux = dynamics.evaluate(*state, cds, rate, mass)
         return dynamics.channels(state[0], state[1], cds, aux)[1]
 
     def window(index):
