@@ -28,92 +28,162 @@ from cpas_bayes.data.synth import synthesize, truth_parameter_values, write_synt
 
 # -- the rule, on constructed pointwise elpd values ----------------------------
 
+from cpas_bayes.stats.model_terms import EXTENSIONS, applies  # noqa: E402
 
 SIZES = {"added_mass": ("k_a", 0.4), "friction_drift": ("load_scale_change", 0.05), "sensor_lag": ("lag", 0.04),
-         "canopy_breathing": ("breathing_amplitude", 0.06), "correlated_noise": ("ar_time", 0.05)}
+         "canopy_breathing": ("breathing_amplitude", 0.06)}
 
 
-def _candidate(name, elpd_i, size=None):
-    """A stand-in for a fitted candidate: pointwise elpd and the posterior of the term's size."""
+def _term_parameters(term):
+    """The term's real parameters (names and priors) from a model built with it."""
+    test, _ = synthesize("drogue", "none", 1)
+    model = prepare_model(test, reduce_test(test), extensions=[cf.make_extension(term)])
+    return [p for p in model.parameters if p.group == term]
+
+
+_PARAMS = {}
+
+
+def _candidate(label, elpd_i, size=None, converged=True, posterior=None):
+    """A stand-in for a fitted model: pointwise elpd, convergence and the posterior of its terms."""
     elpd_i = np.asarray(elpd_i, float)
     loo = SimpleNamespace(elpd_i=xr.DataArray(elpd_i), pareto_k=xr.DataArray(np.zeros_like(elpd_i)),
                           elpd=float(elpd_i.sum()), p=1.0, se=1.0)
-    params, posterior = [], {}
-    if name in SIZES:
-        param, typical = SIZES[name]
-        value = typical if size is None else size
-        params = [SimpleNamespace(name=param, group=name, unit="")]
-        posterior = {param: xr.DataArray(value + 0.01 * value * np.random.default_rng(0).standard_normal((2, 50)))}
-    fit = SimpleNamespace(summary={"diagnostics": {"converged": True, "rhat_max": 1.0}},
-                          model=SimpleNamespace(parameters=params), tree={"posterior": posterior})
-    return cf.CandidateFit(name=name, fit=fit, loo=loo, seconds=0.0)
+    params, post = [], {}
+    rng = np.random.default_rng(0)
+    for term in label.split("+"):
+        if term not in SIZES:
+            continue
+        if term not in _PARAMS:
+            _PARAMS[term] = _term_parameters(term)
+        for p in _PARAMS[term]:
+            params.append(p)
+            if posterior and p.name in posterior:
+                post[p.name] = xr.DataArray(np.asarray(posterior[p.name], float).reshape(2, -1))
+            elif p.name == SIZES[term][0]:
+                value = SIZES[term][1] if size is None else size
+                post[p.name] = xr.DataArray(value + 0.02 * abs(value) * rng.standard_normal((2, 200)))
+            else:   # a shape parameter the data pin near its prior median
+                med = float(p.prior.ppf(0.5))
+                post[p.name] = xr.DataArray(med + 0.01 * abs(med) * rng.standard_normal((2, 200)))
+    fit = SimpleNamespace(summary={"diagnostics": {"converged": converged, "rhat_max": 1.0 if converged else 1.3}},
+                          model=SimpleNamespace(parameters=params), tree={"posterior": post})
+    return cf.CandidateFit(name=label, fit=fit, loo=loo, seconds=0.0)
 
 
-def _field(gains, n=400, seed=0, jitter=0.01):
-    """Baseline and candidates whose pointwise elpd exceeds the baseline's by ``gains[name]`` spread
-    over 40 bins (a localized effect), plus noise of sd ``jitter`` per bin."""
+def _field(gains, n=400, seed=0, jitter=0.01, **kw):
+    """The discrepancy model and term+discrepancy models whose pointwise elpd exceeds the discrepancy's by
+    ``gains[term]`` spread over 40 bins (a localized effect), plus noise of sd ``jitter`` per bin."""
     rng = np.random.default_rng(seed)
     base = rng.normal(-1.0, 0.3, n)
     cands = {}
     for name, g in gains.items():
         bump = np.zeros(n)
         bump[100:140] = g / 40
-        cands[name] = _candidate(name, base + bump + rng.normal(0, jitter, n))
-    return _candidate(cf.BASELINE, base), cands
+        cands[name] = _candidate(f"{name}+discrepancy", base + bump + rng.normal(0, jitter, n), **kw.get(name, {}))
+    return _candidate(cf.DISCREPANCY, base), cands
 
 
 OPTIONS = cf.DiagnoseOptions()
 
 
-def _gains(**kw):
-    g = {"added_mass": 0.0, "friction_drift": 0.0, "sensor_lag": 0.0, "canopy_breathing": 0.0,
-         "correlated_noise": 0.0}
-    g.update(kw)
-    return g
+def _judge(reference, cands):
+    checks = [rule.check_term(t, c, reference, OPTIONS) for t, c in cands.items()]
+    return checks, rule.choose_term(checks, {c.name: c for c in cands.values()}, OPTIONS)
 
 
-def test_a_clear_physical_gain_is_named():
-    base, cands = _field(_gains(sensor_lag=60.0, correlated_noise=15.0))
-    cause, reasons = rule.name_cause(base, cands, OPTIONS)
-    assert cause == "sensor_lag"
-    assert "beats AR(1)" in " ".join(reasons)
+def test_a_clear_gain_with_the_discrepancy_present_is_named():
+    ref, cands = _field({"sensor_lag": 60.0, "added_mass": 3.0})
+    checks, (chosen, clear, reasons) = _judge(ref, cands)
+    assert chosen == "sensor_lag" and clear
+    assert {c.term: c.gains for c in checks} == {"sensor_lag": True, "added_mass": False}
 
 
 def test_a_small_gain_names_nothing():
-    base, cands = _field(_gains(sensor_lag=6.0))
-    assert rule.name_cause(base, cands, OPTIONS)[0] == "none"
+    ref, cands = _field({"sensor_lag": 6.0})
+    assert _judge(ref, cands)[1][0] is None
 
 
-def test_a_term_that_does_not_beat_ar1_names_nothing():
-    base, cands = _field(_gains(added_mass=40.0, correlated_noise=55.0))
-    cause, reasons = rule.name_cause(base, cands, OPTIONS)
-    assert cause == "none"
-    assert any("does not beat AR(1)" in r for r in reasons)
-
-
-def test_two_physical_terms_that_explain_alike_name_nothing():
-    # the same bins, explained alike up to bin-to-bin scatter
-    base, cands = _field(_gains(added_mass=40.0, canopy_breathing=38.0), jitter=0.2)
-    cause, reasons = rule.name_cause(base, cands, OPTIONS)
-    assert cause == "none"
-    assert any("not clearly ahead" in r for r in reasons)
+def test_a_fit_that_did_not_converge_cannot_be_named():
+    ref, cands = _field({"sensor_lag": 60.0}, sensor_lag={"converged": False})
+    checks, (chosen, _, _) = _judge(ref, cands)
+    assert chosen is None and any("did not converge" in r for r in checks[0].reasons)
 
 
 def test_a_negligible_fitted_size_names_nothing():
     """A real elpd gain from a lag of 2 ms (one 100 Hz sample is the floor) is not a cause."""
-    base, cands = _field(_gains(sensor_lag=30.0))
-    cands["sensor_lag"] = _candidate("sensor_lag", cands["sensor_lag"].pointwise_elpd, size=-0.002)
-    cause, reasons = rule.name_cause(base, cands, OPTIONS)
-    assert cause == "none"
-    assert any("practical floor" in r for r in reasons)
+    ref, cands = _field({"sensor_lag": 30.0}, sensor_lag={"size": -0.002})
+    checks, (chosen, _, _) = _judge(ref, cands)
+    assert chosen is None and any("practical floor" in r for r in checks[0].reasons)
+
+
+def test_a_term_at_the_edge_of_its_prior_is_a_stand_in():
+    """Breathing railed at its amplitude bound (0.25) and its damping bound: a stand-in, never a cause."""
+    rng = np.random.default_rng(1)
+    post = {"breathing_amplitude": 0.25 - 0.002 * rng.random(400), "breathing_damping": 0.6 - 0.004 * rng.random(400)}
+    ref, cands = _field({"canopy_breathing": 300.0}, canopy_breathing={"posterior": post})
+    checks, (chosen, _, _) = _judge(ref, cands)
+    assert chosen is None
+    assert any("breathing_amplitude" in e for e in checks[0].at_edge)
+    assert any("stand-in" in r for r in checks[0].reasons)
+
+
+def test_a_size_that_repeats_its_prior_is_not_evidence():
+    prior = next(p.prior for p in _term_parameters("friction_drift") if p.name == "load_scale_change")
+    draws = prior.sample(np.random.default_rng(2), 400)
+    ref, cands = _field({"friction_drift": 40.0}, friction_drift={"posterior": {"load_scale_change": draws}})
+    checks, (chosen, _, _) = _judge(ref, cands)
+    assert checks[0].size_repeats_prior and "load_scale_change" in checks[0].repeats_prior
+    assert chosen is None
+
+
+def test_two_terms_that_explain_alike_are_not_clearly_apart():
+    ref, cands = _field({"added_mass": 40.0, "canopy_breathing": 38.0}, jitter=0.2)
+    checks, (chosen, clear, reasons) = _judge(ref, cands)
+    assert chosen == "added_mass" and not clear
+    assert any("on trial" in r for r in reasons)
 
 
 def test_paired_difference_se_is_the_arviz_formula():
-    base, cands = _field(_gains(sensor_lag=60.0))
-    diff, se = rule.paired_difference(cands["sensor_lag"], base)
-    d = cands["sensor_lag"].pointwise_elpd - base.pointwise_elpd
+    ref, cands = _field({"sensor_lag": 60.0})
+    diff, se = rule.paired_difference(cands["sensor_lag"], ref)
+    d = cands["sensor_lag"].pointwise_elpd - ref.pointwise_elpd
     assert diff == pytest.approx(d.sum())
     assert se == pytest.approx(np.sqrt(d.size * d.var(ddof=1)))
+
+
+def _checks(multiplier=1.0, lb_p=0.5, ppc_p=0.5, ks_p=0.5):
+    import pandas as pd
+    residual_table = pd.DataFrame({"channel": ["accelerometer"] * 3, "phase": ["all", "fill", "steady"],
+                                   "acf1": [0.1, 0.2, 0.0], "ljung_box_p": [lb_p, 0.4, 0.6]})
+    return SimpleNamespace(
+        residuals=SimpleNamespace(noise={"noise_acc": {"mean": multiplier}}, table=residual_table),
+        ppc=SimpleNamespace(table=pd.DataFrame({"statistic": ["peak", "fill_time"], "p_value": [ppc_p, 0.5]})),
+        loo_pit=SimpleNamespace(table=pd.DataFrame({"channel": ["accelerometer"], "ks_p_value": [ks_p]})))
+
+
+@pytest.mark.parametrize("kw,adequate,phrase", [
+    ({}, True, None), ({"multiplier": 2.0}, False, "error multiplier"), ({"multiplier": 0.5}, False, "multiplier"),
+    ({"lb_p": 1e-6}, False, "residual structure"), ({"lb_p": 0.01}, True, None),
+    ({"ppc_p": 0.0}, False, "posterior-predictive"), ({"ks_p": 1e-5}, False, "LOO-PIT")])
+def test_the_baseline_adequacy_thresholds(kw, adequate, phrase):
+    ok, failures = rule.adequacy(_checks(**kw), OPTIONS)
+    assert ok == adequate
+    if phrase:
+        assert any(phrase in f for f in failures)
+
+
+def test_the_share_explained_is_the_fraction_of_the_discrepancy_gain_removed():
+    assert rule.unexplained_share(100.0, 20.0) == pytest.approx(0.8)
+    assert rule.unexplained_share(100.0, 150.0) == 0.0
+    assert rule.unexplained_share(-3.0, 1.0) == 1.0
+
+
+def test_load_cell_terms_do_not_apply_without_load_cells():
+    test, _ = synthesize("drogue", "none", 1)
+    bare = replace(test, parachutes=tuple(replace(p, load_cell=None, flyout_angle=None) for p in test.parachutes))
+    assert [n for n in EXTENSIONS if n != "discrepancy" and not applies(n, bare)] == ["friction_drift", "sensor_lag"]
+    assert all(applies(n, test) for n in EXTENSIONS)
 
 
 # -- the breathing frequency guess ---------------------------------------------
@@ -134,35 +204,42 @@ def test_breathing_frequency_is_read_off_the_baseline_residuals(scenario, seed):
 
 QUICK = replace(cf.DIAGNOSIS_SAMPLER, workers=1, progress=False)
 
-# (scenario, hidden effect, seed, mode): each seed draws its own truth and effect magnitude. Mode
-# "screen" (what a campaign runs) keeps the suite's time; one case and the CLI test run the full comparison.
+# (scenario, hidden effect, seed, mode, causes): each seed draws its own truth and effect magnitude. Mode
+# "screen" (what a campaign runs) keeps the suite's time; the CLI test runs the full comparison. The
+# README's detection study (benchmarks/detection.py) holds the rates; these are a seeded subset of it.
 NAMING_CASES = [
-    ("drogue", "none", 101, "screen"), ("drogue", "none", 102, "screen"),
-    ("drogue", "added_mass", 103, "screen"), ("drogue", "friction_drift", 104, "screen"),
-    ("drogue", "sensor_lag", 105, "full"), ("drogue", "canopy_breathing", 106, "screen"),
-    # Mains cost ~3× a Drogue; the other Main effects are in the README's study
-    ("main", "none", 201, "screen"), ("main", "canopy_breathing", 206, "screen"),
+    ("drogue", "none", 101, "screen", []),
+    ("drogue", "added_mass", 103, "screen", ["added_mass"]),
+    ("drogue", "friction_drift", 104, "screen", ["friction_drift"]),
+    ("drogue", "canopy_breathing", 106, "screen", ["canopy_breathing"]),
+    # out of the catalogue: a flat-topped accelerometer is no term's physics
+    ("drogue", "accelerometer_clipping", 107, "screen", ["unexplained"]),
+    # two catalogued effects at once, on different channels and phases
+    ("drogue", "sensor_lag+canopy_breathing", 108, "screen", ["canopy_breathing", "sensor_lag"]),
+    ("main", "none", 201, "screen", []),
 ]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("scenario,effect,seed,mode", NAMING_CASES)
-def test_diagnose_names_the_hidden_effect(scenario, effect, seed, mode):
+@pytest.mark.parametrize("scenario,effect,seed,mode,causes", NAMING_CASES)
+def test_diagnose_names_the_hidden_effects(scenario, effect, seed, mode, causes):
     test, truth = synthesize(scenario, effect, seed)
-    diagnosis = dg.diagnose_test(test, cf.DiagnoseOptions(seed=seed, sampler=QUICK, mode=mode))
+    diagnosis = dg.diagnose_test(test, cf.DiagnoseOptions(seed=seed, sampler=QUICK, mode=mode, model_forms=False))
     table = diagnosis.versus_baseline.set_index("name")
-    screen = {n: round(r.map_gain, 1) for n, r in diagnosis.screen.items()}
-    assert diagnosis.cause == effect, (truth["effect_params"], table[["elpd_diff", "elpd_diff_se"]], screen,
-                                       diagnosis.reasons)
-    if effect != "none":
+    named = sorted(c for c in diagnosis.causes if c != "unexplained")
+    expected = sorted(c for c in causes if c != "unexplained")
+    assert named == expected, (truth["effect_params"], table[["elpd_diff", "elpd_diff_se"]], diagnosis.reasons)
+    assert ("unexplained" in diagnosis.causes) == ("unexplained" in causes), diagnosis.reasons
+    assert diagnosis.cause == (diagnosis.causes[0] if diagnosis.causes else "none")
+    if effect in ("added_mass", "sensor_lag", "canopy_breathing"):
         # the named term's own parameter is recovered: its 90 % interval holds the truth
-        params = cf.extension_parameters(diagnosis.candidates[effect])
+        params = cf.extension_parameters(diagnosis.named_fit)
         key, true = {"added_mass": ("k_a", truth["effect_params"].get("k_a")),
                      "sensor_lag": ("lag", truth["effect_params"].get("lag")),
-                     "canopy_breathing": ("breathing_frequency", truth["effect_params"].get("frequency_hz")),
-                     "friction_drift": (None, None)}[effect]
-        if key is not None:
-            assert params[key]["q05"] * 0.8 <= true <= params[key]["q95"] * 1.2, (key, true, params[key])
+                     "canopy_breathing": ("breathing_frequency", truth["effect_params"].get("frequency_hz"))}[effect]
+        assert params[key]["q05"] * 0.8 <= true <= params[key]["q95"] * 1.2, (key, true, params[key])
+    if "unexplained" in causes:
+        assert diagnosis.unexplained["elpd_gain"] > 0 or not diagnosis.adequacy["adequate"]
 
 
 @pytest.mark.slow
@@ -173,12 +250,18 @@ def test_diagnose_command_writes_the_documented_outputs(tmp_path):
                  "--candidates", "sensor_lag,added_mass,correlated_noise"])
     assert code == 0
     doc = json.loads((out / "diagnosis.json").read_text())
-    assert doc["cause"] == "sensor_lag"
-    assert {c["name"] for c in doc["candidates"]} == {"sensor_lag", "added_mass", "correlated_noise"}
+    assert doc["cause"] == "sensor_lag" and doc["causes"] == ["sensor_lag"] and doc["verdict"] == "named"
+    assert doc["unexplained"] is None
+    names = {c["name"] for c in doc["candidates"]}
+    assert {"discrepancy", "sensor_lag", "correlated_noise"} <= names
     for c in doc["candidates"]:
         assert {"name", "elpd_diff", "elpd_diff_se", "params"} <= set(c)
     lag = next(c for c in doc["candidates"] if c["name"] == "sensor_lag")["params"]["lag"]
     assert lag["q05"] < 0.05 < lag["q95"]
+    first = doc["rounds"][0]
+    assert first["chosen"] == "sensor_lag" and first["terms"][0]["reference"] == "discrepancy"
+    assert {f["comparison"] for f in doc["model_forms"]} == {"cluster", "decay"}
+    assert next(f for f in doc["model_forms"] if f["comparison"] == "cluster")["better"] == "individual"
     gain = doc["gain"]
     assert gain["extension"] == "sensor_lag" and gain["elpd_gain"] > 10
     assert set(gain["channels"]) == {"accelerometer", "load cell D1", "load cell D2"}
@@ -187,8 +270,9 @@ def test_diagnose_command_writes_the_documented_outputs(tmp_path):
         assert channel["rmse_m2"]["extended"] < 1.05 * channel["rmse_m2"]["baseline"], name
         assert 0 <= channel["coverage_90"]["extended"] <= 1
     assert {"residuals", "error_multipliers", "ppc_flags", "loo_pit", "pareto_k"} <= set(doc["evidence"])
-    for name in ("diagnosis.md", "elpd.png", "residuals.png", "comparison.png", "candidates.csv",
-                 "baseline/residuals.png", "baseline/ppc.png", "baseline/loo_pit.png"):
+    for name in ("diagnosis.md", "elpd.png", "discrepancy.png", "discrepancy.csv", "residuals.png",
+                 "comparison.png", "candidates.csv", "baseline/residuals.png", "baseline/ppc.png",
+                 "baseline/loo_pit.png"):
         assert (out / name).stat().st_size > 0, name
     assert "sensor_lag" in (out / "diagnosis.md").read_text()
 

@@ -95,4 +95,4 @@ def test_each_extension_explains_its_own_effect_and_no_other(scenario, effect):
 def test_unknown_extension_is_refused():
     with pytest.raises(ValueError, match="unknown extension"):
         make_extension("wake_recontact")
-    assert set(EXTENSIONS) == set(PHYSICAL) | {"correlated_noise"}
+    assert set(EXTENSIONS) == set(PHYSICAL) | {"correlated_noise", "discrepancy"}

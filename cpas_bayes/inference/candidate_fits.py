@@ -55,8 +55,8 @@ class DiagnoseOptions:
     sampler: SamplerOptions = DIAGNOSIS_SAMPLER
     priors: object = None
     decay: str = "linear"
-    mode: str = "full"               # "full": sample every candidate; "screen": MAP screen first
-    screen_gain: float = 5.0         # screen: a physical term is sampled if its MAP gain exceeds this
+    mode: str = "full"               # "screen" also needs a term's size at its MAP beyond the practical floor
+    screen_gain: float = 5.0         # a term is sampled when its MAP log posterior rises by more than this
     max_causes: int = 3              # forward selection stops after this many named terms
     min_share: float = 0.5           # named terms must explain this share of the discrepancy's gain
     moved_sd: float = 3.0            # parameters moving more than this (baseline sds) are flagged in words
@@ -240,12 +240,14 @@ def polish_baseline_map(baseline: CandidateFit, options: DiagnoseOptions) -> Can
 def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference: CandidateFit, baseline=None,
                      term=None):
     """MAP of model ``label`` from ``reference``'s MAP; passes when the log posterior rises by more
-    than ``options.screen_gain`` with ``term``'s size beyond its practical floor.
+    than ``options.screen_gain`` (5), and in mode ``screen`` also with ``term``'s size at the MAP
+    beyond its practical floor.
 
-    The MAP gain bounds the elpd gain from above up to the width terms (a term
-    that cannot raise the best fit cannot predict held-out bins better), so a
-    term failing the screen could not have passed the naming rule's
-    ``min_gain`` > ``screen_gain``.
+    The MAP gain bounds the elpd gain from above up to the prior's share (a
+    term that cannot raise the best fit cannot predict held-out bins better;
+    the log prior density of a term's parameters at their MAP is < 3 for every
+    catalogued term), so a term failing the screen could not have passed the
+    naming rule's ``min_gain`` (10).
     """
     started = _time.perf_counter()
     model = _model_for(label, test, reduction, options, baseline if baseline is not None else reference)
@@ -254,12 +256,13 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
     theta, log_post = find_map(model, rng, max(len(guesses), options.sampler.map_starts), guesses)
     gain = float(log_post - reference.fit.sampling.log_post_map)
     size = None
+    strict = options.mode == "screen"
     passed = gain > options.screen_gain
     floor = make_extension(term).practical_floor if term is not None else None
     if floor is not None:
         param, minimum = floor
         size = float(theta[model.index[param]])
-        passed = passed and abs(size) >= minimum
+        passed = passed and (abs(size) >= minimum or not strict)
     return ScreenResult(name=term or label, map_gain=gain, size=size, passed=bool(passed), theta_map=theta,
                         seconds=_time.perf_counter() - started)
 

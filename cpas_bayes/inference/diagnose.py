@@ -10,12 +10,15 @@ Procedure (``diagnose_test``)
 2. **Measure the misfit.** Fit the baseline plus the generic discrepancy
    (:mod:`cpas_bayes.stats.discrepancy`): its elpd gain says how much
    structure there is to explain, its fitted shape where (channel, phase, time).
-3. **Name, forward.** Fit named + T + discrepancy for each catalogued term T
-   that applies to the test's channels (:mod:`cpas_bayes.stats.model_terms`)
-   and judge T against named + discrepancy
-   (:mod:`cpas_bayes.inference.diagnosis_rule`); name the best passing term,
-   add it to the reference and try the others again (screened by their MAP
-   gain first), until none passes.
+3. **Name, forward.** For each catalogued term T that applies to the test's
+   channels (:mod:`cpas_bayes.stats.model_terms`) find the MAP of named + T +
+   discrepancy from the reference's; sample it when the MAP log posterior
+   rises by > 5 (mode ``screen``: also with T's size beyond its floor) — the
+   MAP gain bounds the elpd gain from above, so a term that cannot raise the
+   best fit cannot predict held-out bins better) and judge T against
+   named + discrepancy (:mod:`cpas_bayes.inference.diagnosis_rule`); name the
+   best passing term, add it to the reference and try the others again,
+   until none passes.
 4. **Unexplained?** Fit the named terms without the discrepancy: the
    discrepancy's gain over them is what is left; ``unexplained`` joins the
    causes when that remainder is significant and the named terms explain less
@@ -42,7 +45,8 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, Candidat
                                                  polish_baseline_map, screen_candidate)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_term, compare_table,
-                                                 paired_difference, passes, unexplained_share, versus_baseline)
+                                                 paired_difference, passes, structured_phases, unexplained_share,
+                                                 versus_baseline)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals
@@ -50,6 +54,7 @@ from cpas_bayes.stats.discrepancy import discrepancy_shape
 from cpas_bayes.stats.model_terms import PHYSICAL, applies
 
 BAND = 0.90                 # data coverage band of the gain table
+FORM_MARGIN = 4.0           # elpd: a model form wins clearly beyond 2 se and this (a likelihood ratio of e⁴)
 
 
 @dataclass
@@ -294,16 +299,17 @@ def _model_forms(baseline, fits, options):
     for label, fit in fits.items():
         form = label[5:]
         diff, se = paired_difference(baseline, fit)
-        if form == "composite":
+        if form == "composite":   # the fitted model is the individual one
             mine, other = "individual", "composite"
         else:
             mine, other = options.decay, form
         better, worse, margin = (mine, other, diff) if diff >= 0 else (other, mine, -diff)
         rows.append({"comparison": "cluster" if form == "composite" else "decay", "better": better, "other": worse,
                      "elpd_diff": margin, "elpd_diff_se": se,
-                     "clear": bool(margin > options.min_gain_se * se),
+                     "clear": bool(margin > max(options.min_gain_se * se, FORM_MARGIN)),
                      "in_words": f"{better} beats {worse} by {margin:.1f} ± {se:.1f} in elpd"
-                                 + ("" if margin > options.min_gain_se * se else " (within 2 se: no clear winner)"),
+                                 + ("" if margin > max(options.min_gain_se * se, FORM_MARGIN)
+                                    else f" (within 2 se or {FORM_MARGIN:g}: no clear winner)"),
                      "converged": bool(fit.fit.summary["diagnostics"]["converged"])})
     return rows
 
@@ -362,17 +368,16 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
         if not remaining:
             break
         labels = {t: model_label(named + [t], discrepancy=True) for t in remaining}
-        screen = {}
-        if options.mode == "screen" or named:
-            results = executor.map(_screen_task, [(labels[t], t, test, reduction, options, reference, baseline)
-                                                  for t in remaining], desc="screen", progress=False)
-            screen = dict(zip(remaining, results))
-            for t, r in screen.items():
-                say(f"{test.name}: screen {t} with {reference.name}: MAP gain {r.map_gain:+.1f}"
-                    + (f", size {r.size:.3g}" if r.size is not None else "") + (" → sample" if r.passed else ""))
-            if not named:
-                first_screen = screen
-        to_fit = [t for t in remaining if not screen or screen[t].passed]
+        # every round screens first: a term whose MAP cannot rise cannot gain out of sample
+        results = executor.map(_screen_task, [(labels[t], t, test, reduction, options, reference, baseline)
+                                              for t in remaining], desc="screen", progress=False)
+        screen = dict(zip(remaining, results))
+        for t, r in screen.items():
+            say(f"{test.name}: screen {t} with {reference.name}: MAP gain {r.map_gain:+.1f}"
+                + (f", size {r.size:.3g}" if r.size is not None else "") + (" → sample" if r.passed else ""))
+        if not named:
+            first_screen = screen
+        to_fit = [t for t in remaining if screen[t].passed]
         jobs = [(labels[t], test, reduction, options, reference, baseline,
                  [screen[t].theta_map] if t in screen else None) for t in to_fit]
         fitted = dict(zip(to_fit, _run_fits(executor, jobs, say, test.name)))
@@ -458,8 +463,11 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     is_unexplained = (left and (not named or share < options.min_share)) or (not named and not adequate)
     where, shape = discrepancy_where(reference, final.fit)
     if is_unexplained:
+        # where the discrepancy sits; failing that (a misfit too fast or too fine for a smooth term), the
+        # channel × phase rows whose residuals the adequacy check found structured
+        places = [{k: w[k] for k in ("channel", "phase", "t_start", "t_end")} for w in where]
         unexplained = {"elpd_gain": remaining, "elpd_gain_se": remaining_se, "share_explained": share,
-                       "where": [{k: w[k] for k in ("channel", "phase", "t_start", "t_end")} for w in where]}
+                       "where": places or structured_phases(checks)}
         if named:
             reasons.append(f"the named terms explain {100 * share:.0f} % of the discrepancy's gain; what is left "
                            f"gains {remaining:.1f} ± {remaining_se:.1f}: unexplained")

@@ -274,6 +274,25 @@ def adequacy(checks, options: DiagnoseOptions):
     return not failures, failures
 
 
+def structured_phases(checks):
+    """The channel × phase rows (phase other than ``all``) whose residuals fail the Ljung–Box threshold of
+    :func:`adequacy`, with the time span of the phase: [{channel, phase, t_start, t_end}]."""
+    table = checks.residuals.table
+    rows = table[table["ljung_box_p"].notna()]
+    if not len(rows):
+        return []
+    limit = FAMILY_ALPHA / len(rows)
+    out = []
+    time = np.asarray(checks.residuals.time, float)
+    for r in rows[(rows["ljung_box_p"] < limit) & (rows["phase"] != "all")].sort_values("ljung_box_p").to_dict("records"):
+        labels = np.asarray(checks.residuals.phases[r["channel"]])
+        t = time[labels == r["phase"]]
+        if t.size:
+            out.append({"channel": r["channel"], "phase": r["phase"], "t_start": float(t.min()),
+                        "t_end": float(t.max())})
+    return out
+
+
 def unexplained_share(total, remaining):
     """Share of the discrepancy's gain over the baseline that the named terms explained, in [0, 1]."""
     if total <= 0:

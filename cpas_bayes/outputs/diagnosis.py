@@ -1,13 +1,15 @@
 """Output of a diagnosis (:mod:`cpas_bayes.inference.diagnose`), written into one folder.
 
-* ``diagnosis.json`` — the cause, the reasons, the rule, every candidate's
-  elpd gain and parameters, the gain table and the baseline's evidence (SI);
-  written last, so its presence marks a complete diagnosis.
+* ``diagnosis.json`` — the verdict and causes, what is unexplained and where,
+  the reasons, the rule, every fitted model's elpd gain and parameters, the
+  forward-selection rounds, the model-form comparisons, the gain table and
+  the baseline's evidence (SI); written last, so its presence marks a
+  complete diagnosis.
 * ``diagnosis.md`` — a short report for a flight-test engineer.
 * ``candidates.csv`` — the candidates against the baseline, one row each;
   ``baseline/residual_table.csv`` and ``baseline/ppc.csv`` — the baseline's checks.
 * Figures (:mod:`cpas_bayes.outputs.plots.diagnose`, :mod:`cpas_bayes.outputs.plots.fit`):
-  ``elpd.png``, ``screen.png`` (mode screen), ``residuals.png`` and
+  ``elpd.png``, ``discrepancy.png``, ``screen.png`` (mode screen), ``residuals.png`` and
   ``comparison.png`` (with a term to show), ``baseline/residuals.png``,
   ``baseline/ppc.png``, ``baseline/loo_pit.png``.
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import matplotlib.pyplot as plt
 import numpy as np
+import pandas as pd
 
 from cpas_bayes.core.files import jsonable, write_csv, write_json, write_text
 from cpas_bayes.core.ownership import claim_folder
@@ -38,9 +41,29 @@ _WHAT = {
                   "late by the same delay",
     "canopy_breathing": "the canopies' drag area rings (breathes) after each peak, a damped oscillation the "
                         "stage law does not have",
-    "correlated_noise": "the errors are correlated in time (a generic AR(1) process), which no physical term "
-                        "explains better",
+    "correlated_noise": "the errors are correlated in time (a generic AR(1) process)",
+    "unexplained": "the simulation misses something no catalogued term describes; the generic discrepancy "
+                   "shows where",
 }
+
+
+def _rounds(d: Diagnosis):
+    return [{"named_before": r["named"], "reference": r["reference"], "chosen": r["chosen"], "reasons": r["reasons"],
+             "terms": [c.as_dict() for c in r["checks"]],
+             "screen": {n: {"map_gain": x.map_gain, "size": x.size, "passed": x.passed} for n, x in r["screen"].items()}}
+            for r in d.rounds]
+
+
+def _rule_text(o):
+    return (f"a catalogued term T is judged with the generic discrepancy present: elpd(named + T + discrepancy) - "
+            f"elpd(named + discrepancy) must exceed {o.min_gain:g} and {o.min_gain_se:g} se; its fit must converge, "
+            "its size pass its practical floor, no parameter sit at the edge of its prior, its size posterior not "
+            f"repeat its prior, and it must lead any other passing term by > {o.min_margin_se:g} se (or > "
+            f"{o.min_gain:g} with {o.min_margin_ratio:g}x its gain); named terms join the reference and the others "
+            "are tried again. 'unexplained' is added when the discrepancy's gain over the named terms passes the "
+            f"same thresholds and they explain less than {100 * o.min_share:.0f} % of its gain over the baseline, or "
+            "when nothing is named and the baseline fails its adequacy checks; 'none' needs nothing named and an "
+            "adequate baseline")
 
 
 def diagnosis_document(d: Diagnosis):
@@ -53,26 +76,33 @@ def diagnosis_document(d: Diagnosis):
                      "n_high_pareto_k": r["n_high_pareto_k"], "converged": r["converged"],
                      "rhat_max": r["rhat_max"], "seconds": r["seconds"], "moved": d.moved[r["name"]]})
     for name, r in d.screen.items():
-        if name in d.candidates:
+        if any(row["name"].split("+")[0] == name for row in rows):
             continue
         size = {} if r.size is None else {EXTENSIONS[name].practical_floor[0]: {"map": r.size}}
         rows.append({"name": name, "elpd_diff": None, "elpd_diff_se": None, "params": size, "physical": True,
                      "screened_out": True, "map_gain": r.map_gain, "seconds": r.seconds})
     gain = {k: v for k, v in d.gain.items() if k not in ("residuals", "means")}
     o = d.options
+    disc = d.discrepancy
     return jsonable({
         "test": d.test,
         "cause": d.cause,
+        "causes": d.causes,
+        "verdict": d.verdict,
+        "unexplained": d.unexplained,
         "reasons": d.reasons,
+        "warnings": d.warnings,
+        "discrepancy": {"elpd_gain": disc.get("elpd_gain"), "elpd_gain_se": disc.get("elpd_gain_se"),
+                        "shape_from": disc.get("model"), "figure": "discrepancy.png",
+                        "where": disc.get("where", [])},
+        "adequacy": d.adequacy,
+        "model_forms": d.model_forms,
         "rule": {"min_gain": o.min_gain, "min_gain_se": o.min_gain_se, "min_margin_se": o.min_margin_se,
-                 "text": f"the physical term with the largest elpd gain is named when the gain is > "
-                         f"{o.min_gain:g} and > {o.min_gain_se:g} se, it beats correlated_noise, and, when the next "
-                         f"physical term also gains > {o.min_gain:g}, it leads that term by > {o.min_margin_se:g} "
-                         f"se of their paired difference or by > {o.min_gain:g} with {o.min_margin_ratio:g}x its "
-                         "gain; the named term's size must pass its practical floor; otherwise none",
-                 "loo": "PSIS-LOO per time bin on the joint log-likelihood of all channels of the bin; "
-                        "correlated_noise uses the AR-conditional log p(y_t | y_t-1)"},
+                 "min_share": o.min_share, "text": _rule_text(o),
+                 "loo": "PSIS-LOO per time bin on the joint log-likelihood of all channels of the bin; models with "
+                        "the discrepancy use the exact leave-one-bin-out conditional log p(y_i | y_-i, theta)"},
         "mode": o.mode,
+        "rounds": _rounds(d),
         "screen": {n: {"map_gain": r.map_gain, "size": r.size, "passed": r.passed} for n, r in d.screen.items()},
         "candidates": rows,
         "baseline": {"elpd_loo": float(d.baseline.loo.elpd), "se": float(d.baseline.loo.se),
@@ -94,18 +124,63 @@ def _fmt_gain_rows(gain):
     return lines
 
 
+def _headline(d: Diagnosis):
+    named = [c for c in d.causes if c != "unexplained"]
+    lines = []
+    if named:
+        lines += [f"**Cause{'s' if len(named) > 1 else ''} named: {', '.join(f'`{c}`' for c in named)}.**", ""]
+        lines += [f"- `{c}`: {_WHAT[c]}." for c in named] + [""]
+    if d.unexplained:
+        u = d.unexplained
+        places = "; ".join(f"{w['channel']}, {w['phase']}, {w['t_start']:.2f}–{w['t_end']:.2f} s" for w in u["where"])
+        lines += [f"**{'Also u' if named else 'U'}nexplained**: the generic discrepancy gains "
+                  f"{u['elpd_gain']:.1f} ± {u['elpd_gain_se']:.1f} in elpd beyond "
+                  f"{'the named terms' if named else 'the baseline'}"
+                  + (f", which explain {100 * u['share_explained']:.0f} % of it" if named else "")
+                  + f". Where: {places or 'spread over the record (no region stands out)'}. "
+                  "See `discrepancy.png` for its shape.", ""]
+    if not d.causes:
+        lines += ["**No cause** (`none`): nothing to explain. The generic discrepancy gains "
+                  f"{d.discrepancy['elpd_gain']:.1f} ± {d.discrepancy['elpd_gain_se']:.1f} and the baseline passes its "
+                  "own checks (error multipliers, residual structure, PPC, LOO-PIT).", ""]
+    return lines
+
+
 def diagnosis_markdown(d: Diagnosis, units):
     """A short ``diagnosis.md`` for a flight-test engineer."""
     force = units.label("force")
-    lines = [f"# Diagnosis of {d.test}", ""]
-    if d.cause != "none":
-        lines += [f"**Cause named: `{d.cause}`.** In words: {_WHAT[d.cause]}.", ""]
-    else:
-        lines += ["**No physical cause named** (`none`): the baseline simulation explains the data as well as "
-                  "any of the candidate terms, within the rule below.", ""]
+    lines = [f"# Diagnosis of {d.test}", "", f"Verdict: **{d.verdict}**.", ""] + _headline(d)
     lines += ["Why:", ""] + [f"- {r}" for r in d.reasons] + [""]
-    lines += ["## Candidates (elpd gain over the baseline, PSIS-LOO)", "",
-              "| term | elpd gain ± se | its parameters (posterior mean ± sd) | parameters that moved > 1 sd |",
+    if d.warnings:
+        lines += ["Warnings:", ""] + [f"- {w}" for w in d.warnings] + [""]
+    if not d.adequacy.get("adequate", True):
+        lines += ["The baseline fails its own checks:", ""] + [f"- {f}" for f in d.adequacy["failures"]] + [""]
+    disc = d.discrepancy
+    lines += ["## What the simulation gets wrong (generic discrepancy)", "",
+              f"The discrepancy gains {disc['elpd_gain']:.1f} ± {disc['elpd_gain_se']:.1f} in elpd over the baseline. "
+              f"Regions where its fitted shape (model `{disc['model']}`) is beyond 2 sd and beyond the stated 1-sigma:",
+              "", "| channel | phase | from (s) | to (s) | largest (m²) |", "|---|---|---|---|---|"]
+    for w in disc["where"]:
+        lines.append(f"| {w['channel']} | {w['phase']} | {w['t_start']:.2f} | {w['t_end']:.2f} | {w['peak_m2']:+.3g} |")
+    if not disc["where"]:
+        lines.append("| — | — | — | — | — |")
+    lines += ["", "![discrepancy](discrepancy.png)", ""]
+    lines += ["## Forward selection (each term judged with the discrepancy present)", "",
+              "| round | term | elpd gain ± se over | converged | size | stand-in / prior only | passed |",
+              "|---|---|---|---|---|---|---|"]
+    for i, r in enumerate(d.rounds):
+        for c in r["checks"]:
+            flags = "; ".join(c.at_edge + ([f"prior only: {', '.join(c.repeats_prior)}"] if c.repeats_prior else []))
+            size = "—" if c.size is None else f"{c.size:.3g}"
+            lines.append(f"| {i + 1} | {c.term} | {c.elpd_diff:.1f} ± {c.elpd_diff_se:.1f} over `{c.reference}` | "
+                         f"{'yes' if c.converged else '**failed**'} | {size} | {flags or '—'} | "
+                         f"{'yes' if c.gains and c.eligible else 'no'} |")
+        for name, x in r["screen"].items():
+            if name not in {c.term for c in r["checks"]}:
+                lines.append(f"| {i + 1} | {name} | not sampled: MAP gain {x.map_gain:+.1f} (screen) | — | "
+                             f"{'—' if x.size is None else f'{x.size:.3g}'} | — | no |")
+    lines += ["", "## Every model fitted (elpd gain over the baseline, PSIS-LOO)", "",
+              "| model | elpd gain ± se | its terms' parameters (posterior mean ± sd) | parameters that moved > 1 sd |",
               "|---|---|---|---|"]
     for r in d.versus_baseline.sort_values("elpd_diff", ascending=False).to_dict("records"):
         params = extension_parameters(d.candidates[r["name"]])
@@ -114,14 +189,13 @@ def diagnosis_markdown(d: Diagnosis, units):
         moved = d.moved[r["name"]]
         mtxt = ", ".join(f"{k} ({v['shift_in_baseline_sd']:+.1f} sd)" for k, v in list(moved.items())[:4]) or "—"
         lines.append(f"| {r['name']} | {r['elpd_diff']:.1f} ± {r['elpd_diff_se']:.1f} | {ptxt} | {mtxt} |")
-    for name, r in d.screen.items():
-        if name not in d.candidates:
-            size = f"size {r.size:.3g} at the MAP" if r.size is not None else ""
-            lines.append(f"| {name} | not sampled: MAP gain {r.map_gain:+.1f} (screen) | {size} | — |")
+    if d.model_forms:
+        lines += ["", "## Model form (the seed's by-eye arguments, by ΔELPD)", ""]
+        lines += [f"- {f['comparison']}: {f['in_words']}" for f in d.model_forms]
     lines.append("")
     if d.gain:
         g = d.gain
-        title = "Gain of the named term" if g.get("named") else f"What the best physical term ({g['extension']}) would change"
+        title = f"Gain of the named terms ({g['extension']}) over the baseline"
         lines += [f"## {title}", "", f"elpd gain {g['elpd_gain']:.1f} ± {g['elpd_gain_se']:.1f}.", ""]
         lines += _fmt_gain_rows(g) + [""]
         em = ", ".join(f"{k} {v['baseline']:.2f} → {v['extended']:.2f}" for k, v in g["error_multipliers"].items())
@@ -141,7 +215,7 @@ def diagnosis_markdown(d: Diagnosis, units):
         lines.append(f"| {ch} | {r['sd']:.2f} | {r['acf1']:+.2f} | {r['ljung_box_p']:.2g} |")
     lines += ["", f"PPC statistics outside 1–99 %: {len(ev['ppc_flags'])}; bins with Pareto k > 0.7: "
                   f"{ev['pareto_k']['n_high_pareto_k']}.", "",
-              "Figures: `elpd.png` (the comparison), `screen.png` (MAP screen, mode screen), `residuals.png` "
+              "Figures: `elpd.png` (the comparison), `discrepancy.png` (what is missing, where), `screen.png` (MAP screen, mode screen), `residuals.png` "
               "(before/after), `comparison.png` (predictions against the data), `baseline/residuals.png`, "
               "`baseline/ppc.png`, `baseline/loo_pit.png`.", ""]
     return "\n".join(lines)
@@ -166,8 +240,16 @@ def write_diagnosis(d: Diagnosis, out):
         plt.close(fig)
 
     if len(d.versus_baseline):
-        save(figs.plot_elpd(d.versus_baseline, d.cause, d.options.min_gain, d.options.min_gain_se, d.test),
+        save(figs.plot_elpd(d.versus_baseline, d.causes, d.options.min_gain, d.options.min_gain_se, d.test),
              "elpd.png")
+    if d.discrepancy.get("shape") is not None:
+        save(figs.plot_discrepancy(d.discrepancy["shape"], d.discrepancy["where"], units, d.test), "discrepancy.png")
+        shape = d.discrepancy["shape"]
+        table = {"time_s": shape["time"]}
+        for c, name in enumerate(shape["channels"]):
+            table[f"{name} mean_m2"] = shape["mean"][c]
+            table[f"{name} sd_m2"] = shape["sd"][c]
+        write_csv(out / "discrepancy.csv", pd.DataFrame(table))
     if d.screen:
         save(figs.plot_screen(d.screen, d.options.screen_gain, d.test), "screen.png")
     save(plot_residuals(d.checks.residuals), "baseline/residuals.png")

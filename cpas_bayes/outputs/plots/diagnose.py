@@ -1,9 +1,11 @@
 """Figures of a diagnosis (:mod:`cpas_bayes.inference.diagnose`).
 
 * ``screen.png`` — (mode screen) each physical term's MAP gain over the baseline.
-* ``elpd.png`` — each candidate's elpd gain over the baseline with its ±2 se
-  bar and the rule's thresholds: the named cause stands clear of zero, of the
-  AR(1) alternative and of the other physical terms.
+* ``elpd.png`` — every fitted model's elpd gain over the baseline with its
+  ±2 se bar (the discrepancy alone, each term with it, the named terms).
+* ``discrepancy.png`` — the generic discrepancy's fitted shape per channel
+  (posterior mean ± 2 sd, in drag area, against the stated 1-sigma): where in
+  time and in which channel the simulation is wrong.
 * ``residuals.png`` — standardised residuals against time per channel,
   flight phases shaded, baseline (grey) and with the named (or best) term
   (colour): what the term removes.
@@ -24,27 +26,27 @@ _EXT = "#d95f02"
 _AR = "#7570b3"
 
 
-def plot_elpd(table, cause, min_gain, min_gain_se, test_name):
-    """Horizontal bars: elpd gain over the baseline ± min_gain_se·se per candidate."""
+def plot_elpd(table, causes, min_gain, min_gain_se, test_name):
+    """Horizontal bars: elpd gain over the baseline ± min_gain_se·se per fitted model."""
+    causes = [causes] if isinstance(causes, str) else list(causes)
+    named = "+".join(c for c in causes if c != "unexplained")
     table = table.sort_values("elpd_diff")
     fig, ax = plt.subplots(figsize=(8.5, 0.6 * len(table) + 1.8), constrained_layout=True)
     y = np.arange(len(table))
-    colours = [(_EXT if n == cause else ("0.35" if phys else _AR))
-               for n, phys in zip(table["name"], table["physical"])]
+    colours = [(_EXT if named and n == named else (_AR if "discrepancy" in n else "0.35")) for n in table["name"]]
     ax.barh(y, table["elpd_diff"], color=colours, alpha=0.85)
     ax.errorbar(table["elpd_diff"], y, xerr=min_gain_se * table["elpd_diff_se"], fmt="none", ecolor="k",
                 capsize=3, lw=1, label=f"± {min_gain_se:g} se")
     ax.axvline(0, color="k", lw=0.8)
     ax.axvline(min_gain, color="crimson", ls="--", lw=0.8, label=f"rule: gain > {min_gain:g}")
-    ax.set_yticks(y, [n.replace("_", " ") + ("" if p else " (generic)") for n, p in zip(table["name"],
-                                                                                        table["physical"])])
+    ax.set_yticks(y, [n.replace("_", " ").replace("+", " + ") for n in table["name"]])
     ax.set_xscale("symlog", linthresh=10)
     ax.set_xlabel("elpd gain over the baseline (PSIS-LOO, log units; symmetric-log axis)")
     ax.legend(fontsize=8, loc="lower right")
     ax.grid(alpha=0.3, axis="x")
-    verdict = f"named cause: {cause.replace('_', ' ')}" if cause != "none" else "no physical cause named"
-    ax.set_title(f"{test_name}: which term explains the data better? ({verdict})\n"
-                 "named when its bar clears the dashed line and zero by 2 se and beats AR(1)", fontsize=9)
+    verdict = ("causes: " + ", ".join(c.replace("_", " ") for c in causes)) if causes else "nothing to explain"
+    ax.set_title(f"{test_name}: how much each model explains ({verdict})\n"
+                 "purple: with the generic discrepancy; orange: the named terms alone", fontsize=9)
     return fig
 
 
@@ -127,4 +129,31 @@ def plot_fit_comparison(time, channels, units, name, test_name, window):
         axes[-1, c].set_xlabel("time [s]")
     fig.suptitle(f"{test_name}: posterior-mean predictions of the baseline and of the model with "
                  f"{name.replace('_', ' ')} against the data (load cells: raw Eq. 11 drag areas)", fontsize=10)
+    return fig
+
+
+def plot_discrepancy(shape, where, units, test_name):
+    """One panel per channel: the discrepancy's posterior mean ± 2 sd (drag area) against ±1 stated sigma,
+    the regions the diagnosis reports shaded."""
+    time, names = shape["time"], shape["channels"]
+    area = units.label("area")
+    fig, axes = plt.subplots(len(names), 1, figsize=(9, 2.1 * len(names) + 0.8), sharex=True, squeeze=False,
+                             constrained_layout=True)
+    for c, (ax, name) in enumerate(zip(axes[:, 0], names)):
+        mean, sd, sigma = (units.from_si(shape[k][c], "area") for k in ("mean", "sd", "sigma"))
+        ax.fill_between(time, -sigma, sigma, color="0.85", lw=0, label="± stated 1-sigma")
+        ax.fill_between(time, mean - 2 * sd, mean + 2 * sd, color=_AR, alpha=0.3, lw=0, label="± 2 sd")
+        ax.plot(time, mean, color=_AR, lw=1.2, label="discrepancy (posterior mean)")
+        for w in where:
+            if w["channel"] == name:
+                ax.axvspan(w["t_start"], w["t_end"], color=_EXT, alpha=0.15)
+                ax.annotate(w["phase"], (w["t_start"], 0.92), xycoords=("data", "axes fraction"), fontsize=7,
+                            color=_EXT)
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_ylabel(f"{name}\n({area})", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, loc="upper right", ncol=3)
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.suptitle(f"{test_name}: what the simulation misses (generic discrepancy, orange: reported regions)",
+                 fontsize=10)
     return fig

@@ -1,0 +1,158 @@
+"""Detection study of ``diagnose``: false alarms, power, out-of-catalogue effects and pairs.
+
+    python benchmarks/detection.py [--out benchmarks/detection.csv] [--study clean,ooc,pairs,power]
+                                   [--seeds 20] [--mode screen|full] [--scenarios drogue,main]
+
+Each case is a synthetic test (:mod:`cpas_bayes.data.synth`) with a known
+hidden effect, diagnosed with the default rule; one row per case goes into
+the CSV as soon as it is done, so an interrupted study resumes where it
+stopped (cases already in the CSV are skipped). The summary table printed at
+the end (and written next to the CSV as ``.md``) is the README's:
+
+* clean — no effect; a false alarm is any verdict other than ``none``;
+* ooc — each out-of-catalogue effect (``synth_effects.OUT_OF_CATALOGUE``) at
+  a size drawn from its realistic range; right = ``unexplained`` and no
+  catalogued name;
+* pairs — two catalogued effects at once; right = both named;
+* power — each catalogued effect at fixed sizes; right = named (an
+  ``unexplained`` beside it is allowed).
+
+Seeds: case k of a study uses seed 10_000·(study index) + k, so every study
+draws its own truths and noise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+STUDIES = ("clean", "ooc", "pairs", "power")
+PAIRS = ("sensor_lag+canopy_breathing", "added_mass+friction_drift", "friction_drift+canopy_breathing",
+         "sensor_lag+added_mass")
+POWER_SIZES = {"added_mass": (0.2, 0.4), "friction_drift": (0.03, 0.05), "sensor_lag": (0.02, 0.04),
+               "canopy_breathing": (0.03, 0.06)}
+FIELDS = ["study", "scenario", "effect", "magnitude", "seed", "expected", "causes", "verdict", "right",
+          "discrepancy_gain", "seconds"]
+
+
+def cases(studies, seeds, scenarios):
+    from cpas_bayes.data.synth_effects import OUT_OF_CATALOGUE
+
+    for s_index, study in enumerate(STUDIES):
+        if study not in studies:
+            continue
+        base = 10_000 * (s_index + 1)
+        if study == "clean":
+            for k in range(seeds):
+                yield study, scenarios[k % len(scenarios)], "none", None, base + k
+        elif study == "ooc":
+            for effect in OUT_OF_CATALOGUE:
+                for k in range(seeds):
+                    yield study, scenarios[k % len(scenarios)], effect, None, base + k
+        elif study == "pairs":
+            for k in range(seeds):
+                yield study, scenarios[k % len(scenarios)], PAIRS[k % len(PAIRS)], None, base + k
+        else:
+            for effect, sizes in POWER_SIZES.items():
+                for size in sizes:
+                    for k in range(seeds):
+                        yield study, scenarios[k % len(scenarios)], effect, size, base + k
+
+
+def expected(study, effect):
+    if study == "clean":
+        return "none"
+    if study == "ooc":
+        return "unexplained"
+    return effect
+
+
+def is_right(study, effect, causes):
+    named = [c for c in causes if c != "unexplained"]
+    if study == "clean":
+        return not causes
+    if study == "ooc":
+        return causes == ["unexplained"]
+    if study == "pairs":
+        return sorted(named) == sorted(effect.split("+"))
+    return named == [effect]
+
+
+def run(args):
+    from cpas_bayes.core.executor import make_executor
+    from cpas_bayes.data.synth import synthesize
+    from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER, DiagnoseOptions
+    from cpas_bayes.inference.diagnose import diagnose_test
+
+    out = Path(args.out)
+    done = set()
+    if out.is_file():
+        with out.open(newline="") as f:
+            done = {(r["study"], r["scenario"], r["effect"], r["magnitude"], r["seed"]) for r in csv.DictReader(f)}
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with out.open("w", newline="") as f:
+            csv.DictWriter(f, FIELDS).writeheader()
+    todo = [c for c in cases(args.study.split(","), args.seeds, args.scenarios.split(","))
+            if (c[0], c[1], c[2], "" if c[3] is None else str(c[3]), str(c[4])) not in done]
+    print(f"{len(todo)} cases to run ({len(done)} already in {out})", flush=True)
+    executor = make_executor(args.workers)
+    try:
+        for i, (study, scenario, effect, magnitude, seed) in enumerate(todo):
+            test, _ = synthesize(scenario, effect, seed, magnitude=magnitude)
+            options = DiagnoseOptions(seed=seed, mode=args.mode, model_forms=False,
+                                      sampler=replace(DIAGNOSIS_SAMPLER, workers=args.workers, progress=False))
+            t0 = time.perf_counter()
+            d = diagnose_test(test, options, executor=executor)
+            row = {"study": study, "scenario": scenario, "effect": effect,
+                   "magnitude": "" if magnitude is None else magnitude, "seed": seed,
+                   "expected": expected(study, effect), "causes": "+".join(d.causes) or "none",
+                   "verdict": d.verdict, "right": is_right(study, effect, d.causes),
+                   "discrepancy_gain": round(d.discrepancy["elpd_gain"], 1),
+                   "seconds": round(time.perf_counter() - t0, 1)}
+            with out.open("a", newline="") as f:
+                csv.DictWriter(f, FIELDS).writerow(row)
+            print(f"[{i + 1}/{len(todo)}] {study} {scenario} {effect} {magnitude or ''} seed {seed}: "
+                  f"{row['causes']} ({'right' if row['right'] else 'WRONG'}, {row['seconds']} s)", flush=True)
+    finally:
+        executor.close()
+    table = summary(out)
+    out.with_suffix(".md").write_text(table + "\n")
+    print(table)
+
+
+def summary(path):
+    import pandas as pd
+
+    d = pd.read_csv(path)
+    d["right"] = d["right"].astype(str) == "True"
+    lines = ["| study | scenario | effect | size | cases | right | rate | verdicts |", "|---|---|---|---|---|---|---|---|"]
+    for (study, scenario, effect, size), g in d.fillna({"magnitude": ""}).groupby(
+            ["study", "scenario", "effect", "magnitude"], sort=False):
+        verdicts = ", ".join(f"{k} {v}" for k, v in g["causes"].value_counts().items())
+        lines.append(f"| {study} | {scenario} | {effect} | {size} | {len(g)} | {int(g['right'].sum())} | "
+                     f"{g['right'].mean():.0%} | {verdicts} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default="benchmarks/detection.csv")
+    parser.add_argument("--study", default=",".join(STUDIES))
+    parser.add_argument("--seeds", type=int, default=20, help="cases per study cell")
+    parser.add_argument("--scenarios", default="drogue,main")
+    parser.add_argument("--mode", default="screen", choices=("screen", "full"))
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args(argv)
+    unknown = set(args.study.split(",")) - set(STUDIES)
+    if unknown:
+        parser.error(f"unknown study {sorted(unknown)[0]!r}; use any of {', '.join(STUDIES)}")
+    run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
