@@ -152,20 +152,22 @@ def test_paired_difference_se_is_the_arviz_formula():
     assert se == pytest.approx(np.sqrt(d.size * d.var(ddof=1)))
 
 
-def _checks(multiplier=1.0, lb_p=0.5, ppc_p=0.5, ks_p=0.5):
+def _checks(multiplier=1.0, lb_p=0.5, ppc_extreme=0, ks_p=0.5):
     import pandas as pd
     residual_table = pd.DataFrame({"channel": ["accelerometer"] * 3, "phase": ["all", "fill", "steady"],
                                    "acf1": [0.1, 0.2, 0.0], "ljung_box_p": [lb_p, 0.4, 0.6]})
+    p_values = [0.0] * ppc_extreme + [0.5] * (30 - ppc_extreme)
     return SimpleNamespace(
         residuals=SimpleNamespace(noise={"noise_acc": {"mean": multiplier}}, table=residual_table),
-        ppc=SimpleNamespace(table=pd.DataFrame({"statistic": ["peak", "fill_time"], "p_value": [ppc_p, 0.5]})),
+        ppc=SimpleNamespace(table=pd.DataFrame({"statistic": ["peak"] * 30, "p_value": p_values})),
         loo_pit=SimpleNamespace(table=pd.DataFrame({"channel": ["accelerometer"], "ks_p_value": [ks_p]})))
 
 
 @pytest.mark.parametrize("kw,adequate,phrase", [
     ({}, True, None), ({"multiplier": 2.0}, False, "error multiplier"), ({"multiplier": 0.5}, False, "multiplier"),
-    ({"lb_p": 1e-6}, False, "residual structure"), ({"lb_p": 0.01}, True, None),
-    ({"ppc_p": 0.0}, False, "posterior-predictive"), ({"ks_p": 1e-5}, False, "LOO-PIT")])
+    ({"lb_p": 1e-6}, False, "residual structure"), ({"lb_p": 4e-4}, True, None),
+    ({"ppc_extreme": 2}, True, None), ({"ppc_extreme": 3}, False, "posterior-predictive"),
+    ({"ks_p": 1e-5}, False, "LOO-PIT")])
 def test_the_baseline_adequacy_thresholds(kw, adequate, phrase):
     ok, failures = rule.adequacy(_checks(**kw), OPTIONS)
     assert ok == adequate
