@@ -27,7 +27,7 @@ import numpy as np
 from cpas_bayes.inference.fit import Fit, SamplerOptions, fit_model, prepare_model
 
 from cpas_bayes.inference.start import find_map
-from cpas_bayes.stats.discrepancy import Discrepancy
+from cpas_bayes.stats.discrepancy import Discrepancy, residual_envelope
 from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
 
 CANDIDATES = PHYSICAL
@@ -160,14 +160,21 @@ def _model_for(label, test, reduction, options, baseline, **model_options):
         else:
             extensions.append(make_extension(name))
     if with_discrepancy:
-        extensions.append(Discrepancy())
+        envelope = None
+        if baseline is not None:   # every model with the discrepancy gets the same prior: the baseline's envelope
+            envelope = residual_envelope(baseline.fit.model, baseline.fit.sampling.theta_map)
+        extensions.append(Discrepancy(envelope=envelope))
     return prepare_model(test, reduction, options.priors, model_options.pop("decay", options.decay),
                          extensions=extensions, **model_options)
 
 
 def start_guesses(model, reference):
     """MAP starts of ``model`` from a fitted ``reference``: its MAP by parameter name, each term the
-    reference lacks at each of its ``start_points`` (all combinations), the rest at prior medians."""
+    reference lacks at each of its ``start_points`` (all combinations), the rest at prior medians.
+
+    Values are moved inside the prior's 0.1–99.9 % quantiles: a reference that sat at a bound (a
+    discrepancy switched off at its lowest scale) would otherwise start the bounded search where its
+    transform is singular, and the new term's parameters would not move."""
     base = dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))
     known = {e.name for e in reference.fit.model.extensions}
     new = [e for e in model.extensions if e.name not in known]
@@ -180,7 +187,8 @@ def start_guesses(model, reference):
                 theta[i] = base[name]
             elif name in point:
                 theta[i] = point[name]
-        rows.append(theta)
+        inner = [(p.prior.ppf(1e-3), p.prior.ppf(1 - 1e-3)) for p in model.parameters]
+        rows.append(np.clip(theta, [lo for lo, _ in inner], [hi for _, hi in inner]))
     return rows
 
 
