@@ -13,8 +13,9 @@ Measured (not timed tests):
   posterior / converged point fit is the headline; the single run is shown
   because it is what a script with default options returns.
 * diagnose_drogue / diagnose_main: wall time of ``cpas-bayes diagnose`` (mode
-  full: baseline + five candidates sampled, PSIS-LOO, gain, no figures) on the
-  same examples; and in mode screen.
+  full: baseline, the generic discrepancy, the model forms, every catalogued
+  term whose MAP rises by > 5 sampled with the discrepancy, forward selection,
+  PSIS-LOO, gain, no figures) on the same examples; and in mode screen.
 
 * montecarlo_main: 10,000 runs of the three-Main cluster (the bundled example's
   configuration, a memo with the example's ranges) in this process and on 2
@@ -92,16 +93,18 @@ def bench_fit(path):
 def bench_diagnose(path, mode):
     from dataclasses import replace
 
-    from cpas_bayes.inference.diagnose import DIAGNOSIS_SAMPLER, DiagnoseOptions, diagnose_test
+    from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER, DiagnoseOptions
+    from cpas_bayes.inference.diagnose import diagnose_test
 
     test = read_bundle(path)
     t0 = time.perf_counter()
     d = diagnose_test(test, DiagnoseOptions(mode=mode, sampler=replace(DIAGNOSIS_SAMPLER, progress=False)))
     wall = time.perf_counter() - t0
-    return {"test": test.name, "mode": mode, "wall_s": wall, "cause": d.cause,
-            "candidates_sampled": sorted(d.candidates),
+    return {"test": test.name, "mode": mode, "wall_s": wall, "cause": d.cause, "causes": d.causes,
+            "verdict": d.verdict, "models_sampled": sorted(d.candidates), "model_forms": d.model_forms,
             "elpd_diff": {r["name"]: r["elpd_diff"] for r in d.versus_baseline.to_dict("records")},
-            "summary": f"cause {d.cause}, {len(d.candidates)} candidates sampled"}
+            "summary": f"{d.verdict} ({', '.join(d.causes) or 'none'}); {len(d.candidates)} models sampled "
+                       f"beside the baseline and {len(d.model_forms)} model forms"}
 
 
 def _main_memo():

@@ -4,14 +4,17 @@ Kennedy–O'Hagan style, each channel's drag area gets a smooth additive term
 δ_c(t) on top of the simulation (the physics of every named term included)::
 
     y_c(t_i) = prediction_c(t_i; θ) + δ_c(t_i) + ε_c,i,
-    δ_c(t) = λ_c · s_c · Σ_m b_c,m · φ_m(t),      b ~ N(0, σ_δ² I)
+    δ_c(t) = λ_c · s_c · Σ_m e_c,m · b_c,m · φ_m(t),      b ~ N(0, σ_δ² I)
 
 φ_m are cubic B-splines uniform in *bin index*: the bins are 0.02 s wide
 around stage starts and 0.1 s in steady flight, so knots every ``knot_bins``
 bins resolve a fill (0.1 s apart there) while staying coarse where nothing
 happens. s_c is the channel's median 1-sigma, so σ_δ is the discrepancy's size
 in units of the stated noise; λ_c is the channel's error multiplier (so the
-term is independent of it after whitening). One hyperparameter σ_δ with a
+term is independent of it after whitening); e_c,m is the baseline's local
+residual excess at the basis function's centre (:func:`residual_envelope`),
+which gives the term room where the baseline misses and almost none where it
+fits. One hyperparameter σ_δ with a
 lognormal prior of median 0.05 (sampled as log σ_δ) keeps the term off unless the data need it:
 at σ_δ → 0 the model is the baseline exactly, bin by bin.
 
