@@ -65,7 +65,6 @@ seed with and without an effect differs only through the effect.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -300,16 +299,7 @@ def magnitude_problem(effect: str, value) -> str | None:
         return fx.pair_magnitude_problem(effect, value, magnitude_problem)
     if effect in fx.HIDDEN_EFFECTS:
         return fx.hidden_magnitude_problem(effect, value)
-    low, high, low_in, high_in, what = EFFECT_MAGNITUDE_LIMITS[effect]
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        return f"{effect} magnitude ({what}) must be a number, got {value!r}"
-    inside = (value >= low if low_in else value > low) and (value <= high if high_in else value < high)
-    if not math.isfinite(value) or not inside:
-        return (f"{effect} magnitude ({what}) must be in {'[' if low_in else '('}{low:g}, {high:g}"
-                f"{']' if high_in else ')'}, got {value:g}")
-    return None
+    return fx.limits_problem(effect, value, EFFECT_MAGNITUDE_LIMITS[effect])
 
 
 def simulation_options(effect: str, effect_params: dict) -> SimulationOptions:

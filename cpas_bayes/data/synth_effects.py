@@ -192,7 +192,12 @@ def causes_of(effect: str) -> list[str]:
 
 def hidden_magnitude_problem(effect: str, value) -> str | None:
     """Why ``value`` cannot be the magnitude of the hidden ``effect`` (a sentence), or None."""
-    low, high, low_in, high_in, what = HIDDEN_MAGNITUDE_LIMITS[effect]
+    return limits_problem(effect, value, HIDDEN_MAGNITUDE_LIMITS[effect])
+
+
+def limits_problem(effect: str, value, limits) -> str | None:
+    """Why ``value`` is outside ``limits`` = (low, high, low included, high included, what it is), or None."""
+    low, high, low_in, high_in, what = limits
     try:
         value = float(value)
     except (TypeError, ValueError):
