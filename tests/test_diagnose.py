@@ -99,6 +99,15 @@ def test_a_clear_gain_with_the_discrepancy_present_is_named():
     assert {c.term: c.gains for c in checks} == {"sensor_lag": True, "added_mass": False}
 
 
+@pytest.mark.parametrize("share,misfit,named", [(0.9, True, True), (0.3, True, False), (0.9, False, False)])
+def test_a_term_that_takes_over_a_significant_discrepancy_is_named_below_two_se(share, misfit, named):
+    """A gain of 30 spread thinly (se > 15) passes only by taking over most of a real discrepancy."""
+    ref, cands = _field({"sensor_lag": 30.0}, jitter=0.9)
+    check = rule.check_term("sensor_lag", cands["sensor_lag"], ref, OPTIONS, share=share, misfit=misfit)
+    assert check.elpd_diff_se > 15
+    assert (check.gains and check.eligible) == named, check.reasons
+
+
 def test_a_small_gain_names_nothing():
     ref, cands = _field({"sensor_lag": 6.0})
     assert _judge(ref, cands)[1][0] is None

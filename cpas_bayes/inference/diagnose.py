@@ -358,6 +358,17 @@ def discrepancy_where(candidate: CandidateFit, phase_fit: Fit, max_regions=6, dr
     return regions[:max_regions], {"time": obs.time, "mean": mean, "sd": sd, "sigma": sigma, "channels": names}
 
 
+def discrepancy_energy(candidate: CandidateFit, draws=100):
+    """Σ (posterior mean of δ / stated 1-sigma)² over channels and bins: how much discrepancy a model keeps."""
+    model, post = candidate.fit.model, candidate.fit.tree["posterior"]
+    theta = np.stack([np.asarray(post[n].values, float).ravel() for n in model.names], axis=-1)
+    theta = theta[np.linspace(0, theta.shape[0] - 1, min(draws, theta.shape[0])).astype(int)]
+    mean, _ = discrepancy_shape(model, theta)
+    obs = model.obs
+    sigma = np.concatenate([np.hypot(obs.acc_sigma, obs.acc_qbar)[None], np.hypot(obs.lc_sigma, obs.lc_qbar)])
+    return float(np.sum((mean / sigma) ** 2))
+
+
 def _forward_selection(test, reduction, options, baseline, discrepancy, terms, executor, say):
     """Name terms one at a time, each judged with the discrepancy present; returns (named, reference, rounds,
     fits, first screen)."""
@@ -382,7 +393,12 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
                  [screen[t].theta_map] if t in screen else None) for t in to_fit]
         fitted = dict(zip(to_fit, _run_fits(executor, jobs, say, test.name)))
         fits.update({labels[t]: f for t, f in fitted.items()})
-        checks = [check_term(t, fitted[t], reference, options) for t in to_fit]
+        # Path B of the rule needs a misfit the discrepancy found to begin with
+        misfit = passes(*paired_difference(discrepancy, baseline), options)
+        reference_energy = discrepancy_energy(reference)
+        checks = [check_term(t, fitted[t], reference, options, misfit=misfit,
+                             share=1.0 - discrepancy_energy(fitted[t]) / reference_energy if reference_energy > 0
+                             else None) for t in to_fit]
         chosen, clear, reasons = choose_term(checks, {f.name: f for f in fitted.values()}, options)
         if trial is not None:
             earlier, rival = trial

@@ -15,7 +15,13 @@ when the effect's form differs from it a little, and a term standing in for
 something else gains little (the discrepancy already took that structure).
 T may be named when
 
-* its gain exceeds ``min_gain`` (10) and ``min_gain_se`` (2) standard errors;
+* its gain exceeds ``min_gain`` (10) and ``min_gain_se`` (2) standard errors —
+  or, when the discrepancy itself found a significant misfit, its gain
+  exceeds ``min_gain`` and it takes over ≥ 70 % of the discrepancy (the
+  whitened energy of the discrepancy's posterior mean falls by that much when
+  T is added). The discrepancy interpolates a smooth misfit well, so a term
+  of the right physics may beat it by less than 2 se on the bins while
+  explaining nearly all of it; a stand-in leaves most of it in place;
 * its fit converged (R-hat and ESS of the short diagnosis fit);
 * its fitted size is beyond the term's practical floor (``Extension.practical_floor``);
 * no parameter of T sits at the edge of its prior: the posterior's 5 % or
@@ -86,6 +92,7 @@ PPC_TAIL = 0.005            # a PPC statistic is flagged outside [PPC_TAIL, 1 �
 PPC_MAX_FLAGS = 2           # ... and more than this many flags fail the baseline
 EDGE_QUANTILE = 0.005
 REPEATS_PRIOR = 0.9
+TAKE_OVER = 0.7             # share of a significant discrepancy a term must take over when its gain is < 2 se
 
 
 def paired_difference(a: CandidateFit, b: CandidateFit):
@@ -143,7 +150,8 @@ class TermCheck:
     converged: bool
     size: float | None          # the size parameter's posterior median
     below_floor: bool
-    gains: bool = False         # passes the gain thresholds
+    gains: bool = False         # passes the gain thresholds (or takes the discrepancy over)
+    share: float | None = None  # fraction of the reference's discrepancy the term takes over
     size_repeats_prior: bool = False
     at_edge: list = field(default_factory=list)        # "parameter (upper/lower edge ...)"
     repeats_prior: list = field(default_factory=list)  # parameters whose posterior repeats the prior
@@ -158,6 +166,7 @@ class TermCheck:
         return {"term": self.term, "model": self.model, "reference": self.reference, "elpd_diff": self.elpd_diff,
                 "elpd_diff_se": self.elpd_diff_se, "converged": self.converged, "size": self.size,
                 "below_floor": self.below_floor, "at_edge": self.at_edge, "repeats_prior": self.repeats_prior,
+                "discrepancy_taken_over": self.share,
                 "passed": self.gains and self.eligible, "reasons": self.reasons}
 
 
@@ -191,8 +200,14 @@ def parameter_health(candidate: CandidateFit, term: str, rng=None):
     return out
 
 
-def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: DiagnoseOptions) -> TermCheck:
-    """Judge ``term`` in ``candidate`` (= reference + term) against ``reference`` (the rule above)."""
+def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: DiagnoseOptions,
+               share=None, misfit=False) -> TermCheck:
+    """Judge ``term`` in ``candidate`` (= reference + term) against ``reference`` (the rule above).
+
+    ``share``: the fraction of the reference's discrepancy that the term takes
+    over (1 − its whitened energy with the term / without); ``misfit``: whether
+    the reference's discrepancy itself passes the gain thresholds.
+    """
     diff, se = paired_difference(candidate, reference)
     converged = bool(candidate.fit.summary["diagnostics"]["converged"])
     health = parameter_health(candidate, term)
@@ -205,10 +220,20 @@ def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: 
                                for n, h in health.items() if h["edge"]],
                       repeats_prior=[n for n, h in health.items() if h["repeats_prior"]],
                       size_repeats_prior=any(h["repeats_prior"] for h in health.values() if h["is_size"]),
-                      gains=passes(diff, se, options))
+                      gains=passes(diff, se, options), share=share)
+    takes_over = bool(misfit and share is not None and share >= TAKE_OVER and diff > options.min_gain)
     r = check.reasons
-    r.append(f"{term} gains {diff:.1f} ± {se:.1f} in elpd over {reference.name}"
-             + ("" if check.gains else f" (the rule needs > {options.min_gain:g} and > {options.min_gain_se:g} se)"))
+    if passes(diff, se, options):
+        r.append(f"{term} gains {diff:.1f} ± {se:.1f} in elpd over {reference.name}")
+    elif takes_over:
+        check.gains = True
+        r.append(f"{term} gains {diff:.1f} ± {se:.1f} in elpd over {reference.name} and takes over "
+                 f"{100 * share:.0f} % of its discrepancy: the physics explains the misfit the generic term found")
+    else:
+        r.append(f"{term} gains {diff:.1f} ± {se:.1f} in elpd over {reference.name} (the rule needs > "
+                 f"{options.min_gain:g} and > {options.min_gain_se:g} se, or > {options.min_gain:g} while taking over "
+                 f"≥ {100 * TAKE_OVER:.0f} % of a significant discrepancy"
+                 + (f"; it takes over {100 * share:.0f} %" if share is not None else "") + ")")
     if not converged:
         r.append(f"the fit of {candidate.name} did not converge (R-hat "
                  f"{candidate.fit.summary['diagnostics']['rhat_max']:.3f}): it cannot name {term}")
