@@ -20,6 +20,7 @@ def test_the_documented_example_config_reads(tmp_path):
     config = cfg.load_config(path)
     assert config.name == "EDU Drogue and Main campaign"
     assert config.diagnose == "screen" and config.montecarlo_runs == 10000 and config.fit_ensembles == 4
+    assert config.model_forms is True
 
 
 @pytest.mark.parametrize("text,where", [
@@ -27,6 +28,7 @@ def test_the_documented_example_config_reads(tmp_path):
     ("colour = 'red'\n", "colour"),
     ("[diagnose]\nmode = 'sometimes'\n", "diagnose.mode"),
     ("[diagnose]\ncandidates = ['wake']\n", "diagnose.candidates"),
+    ("[diagnose]\nmodel_forms = 'yes'\n", "diagnose.model_forms"),
     ("[montecarlo]\nruns = 'many'\n", "montecarlo.runs"),
 ])
 def test_a_bad_config_is_refused_naming_the_key(tmp_path, text, where):
@@ -64,6 +66,8 @@ workers = 1
 ensembles = 1
 max_steps = 1000
 tau_factor = 10
+[diagnose]
+model_forms = false
 [montecarlo]
 runs = 400
 [compare]

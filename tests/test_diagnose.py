@@ -216,11 +216,11 @@ def test_breathing_frequency_is_read_off_the_baseline_residuals(scenario, seed):
 QUICK = replace(cf.DIAGNOSIS_SAMPLER, workers=1, progress=False)
 
 # (scenario, hidden effect, seed, mode, causes): each seed draws its own truth and effect magnitude. Mode
-# "screen" (what a campaign runs) keeps the suite's time; the CLI test runs the full comparison. The
+# "screen" (what a campaign runs) keeps the suite's time; the CLI test runs the full comparison and
+# names a single catalogued effect (power). The
 # README's detection study (benchmarks/detection.py) holds the rates; these are a seeded subset of it.
 NAMING_CASES = [
     ("drogue", "none", 101, "screen", []),
-    ("drogue", "added_mass", 103, "screen", ["added_mass"]),
     # out of the catalogue: a flat-topped accelerometer is no term's physics
     ("drogue", "accelerometer_clipping", 107, "screen", ["unexplained"]),
     # two catalogued effects at once, on different channels and phases
@@ -232,8 +232,10 @@ NAMING_CASES = [
 @pytest.mark.parametrize("scenario,effect,seed,mode,causes", NAMING_CASES)
 def test_diagnose_names_the_hidden_effects(scenario, effect, seed, mode, causes):
     test, truth = synthesize(scenario, effect, seed)
+    # one round past the named causes (a spurious extra name could show), none after two
     named_count = len([c for c in causes if c != "unexplained"])
-    options = cf.DiagnoseOptions(seed=seed, sampler=QUICK, mode=mode, model_forms=False, max_causes=named_count + 1)
+    options = cf.DiagnoseOptions(seed=seed, sampler=QUICK, mode=mode, model_forms=False,
+                                 max_causes=min(named_count + 1, 2))
     diagnosis = dg.diagnose_test(test, options)
     table = diagnosis.versus_baseline.set_index("name")
     named = sorted(c for c in diagnosis.causes if c != "unexplained")

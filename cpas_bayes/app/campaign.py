@@ -257,7 +257,7 @@ def _diagnose_work(test, reduced, config, fit_folder, echo, executor=None):
 
         fit = load_baseline_fit(test, reduced(), fit_folder, config)
         options = DiagnoseOptions(seed=config.seed, candidates=tuple(config.candidates), priors=config.priors,
-                                  decay=config.decay, mode=config.diagnose,
+                                  decay=config.decay, mode=config.diagnose, model_forms=config.model_forms,
                                   sampler=replace(DIAGNOSIS_SAMPLER, workers=config.workers, progress=False))
         d = diagnose_test(test, options, reduction=reduced(), baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
         write_diagnosis(d, tmp)

@@ -33,6 +33,7 @@ class CampaignConfig:
     workers: int = 2
     diagnose: str = "screen"              # "screen", "full" or "off"
     candidates: tuple = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
+    model_forms: bool = True              # composite cluster and the other decay, by ΔELPD, in each diagnosis
     montecarlo_runs: int = 10000
     compare_runs: int = 2000
     pool_draws: int = 10000
@@ -48,7 +49,7 @@ _TOML_KEYS = {
     (): {"name": "name", "seed": "seed", "priors": "priors", "decay": "decay", "workers": "workers"},
     ("fit",): {"ensembles": "fit_ensembles", "max_steps": "fit_max_steps", "tau_factor": "fit_tau_factor",
                "check_every": "fit_check_every"},
-    ("diagnose",): {"mode": "diagnose", "candidates": "candidates"},
+    ("diagnose",): {"mode": "diagnose", "candidates": "candidates", "model_forms": "model_forms"},
     ("montecarlo",): {"runs": "montecarlo_runs"},
     ("compare",): {"runs": "compare_runs"},
     ("pool",): {"draws": "pool_draws"},
@@ -71,6 +72,7 @@ check_every = 500             # steps between convergence checks and checkpoints
 [diagnose]
 mode = "screen"               # "screen" (MAP screen, then sample), "full", "off"
 candidates = ["added_mass", "friction_drift", "sensor_lag", "canopy_breathing"]   # catalogued terms to try ("correlated_noise" adds the AR(1) alternative, reported only)
+model_forms = true            # also compare composite vs individual cluster and the decay shapes (2 more fits)
 
 [montecarlo]
 runs = 10000                  # 1–10,000,000, and what fits in half the available memory
@@ -121,6 +123,8 @@ def load_config(path) -> CampaignConfig:
         elif name == "diagnose" and value not in ("screen", "full", "off"):
             problem = (f"{value!r:.40}{did_you_mean(str(value), ('screen', 'full', 'off'))} is not \"screen\", "
                        "\"full\" or \"off\"")
+        elif name == "model_forms" and not isinstance(value, bool):
+            problem = f"{value!r:.40} is not true or false"
         elif name == "decay" and value not in ("linear", "exponential"):
             problem = f"{value!r:.40} is not \"linear\" or \"exponential\""
         elif name in ("name", "priors") and (not isinstance(value, str) or not value.strip()):

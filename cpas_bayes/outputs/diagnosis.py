@@ -164,7 +164,7 @@ def diagnosis_markdown(d: Diagnosis, units):
         lines.append(f"| {w['channel']} | {w['phase']} | {w['t_start']:.2f} | {w['t_end']:.2f} | {w['peak_m2']:+.3g} |")
     if not disc["where"]:
         lines.append("| — | — | — | — | — |")
-    lines += ["", "![discrepancy](discrepancy.png)", ""]
+    lines += ["", "Its shape, channel by channel: `discrepancy.png` (and `discrepancy.csv`).", ""]
     lines += ["## Forward selection (each term judged with the discrepancy present)", "",
               "| round | term | elpd gain ± se over | converged | size | stand-in / prior only | passed |",
               "|---|---|---|---|---|---|---|"]
