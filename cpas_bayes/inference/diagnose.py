@@ -241,13 +241,12 @@ def _evidence(checks, candidate_table):
 
 def diagnose_test(test, options: DiagnoseOptions = DiagnoseOptions(), reduction=None, echo=None,
                   baseline_fit: Fit | None = None, executor=None) -> Diagnosis:
-    """Fit the baseline and the candidates, compare them, name the cause and measure its gain.
+    """Fit the baseline, the discrepancy and the candidates; name the causes, say what is unexplained.
 
-    Mode ``full`` samples every candidate. Mode ``screen`` first finds each
-    physical candidate's MAP from the baseline's and samples only those that
-    pass :func:`screen_candidate` (plus ``correlated_noise`` to compare with);
-    when none passes, the cause is ``none`` without further sampling.
-    ``baseline_fit`` reuses a baseline fit instead of sampling one.
+    The procedure is the module's. Both modes MAP-screen each term before
+    sampling it (a MAP gain > 5); mode ``screen`` also needs the term's size at
+    its MAP beyond its practical floor. ``baseline_fit`` reuses a baseline fit
+    instead of sampling one.
 
     ``executor`` (:mod:`cpas_bayes.core.executor`; default ``options.sampler.workers``
     local processes) runs the screens and the candidate fits side by side, or
