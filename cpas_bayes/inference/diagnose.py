@@ -50,7 +50,7 @@ from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_te
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals
-from cpas_bayes.stats.discrepancy import discrepancy_shape
+from cpas_bayes.stats.discrepancy import channel_sigma, discrepancy_shape
 from cpas_bayes.stats.model_terms import PHYSICAL, applies
 
 BAND = 0.90                 # data coverage band of the gain table
@@ -100,11 +100,12 @@ def _screen_task(job):
     return screen_candidate(label, test, reduction, options, reference, baseline=baseline, term=term)
 
 
-def _candidate_task(job):
+def _candidate_task(job, executor=None):
     label, test, reduction, options, reference, baseline, guesses = job
     if label.startswith("form:"):
-        return fit_model_form(label[5:], test, reduction, options)
-    return fit_candidate(label, test, reduction, options, reference=reference, baseline=baseline, guesses=guesses)
+        return fit_model_form(label[5:], test, reduction, options, executor=executor)
+    return fit_candidate(label, test, reduction, options, reference=reference, baseline=baseline, guesses=guesses,
+                         executor=executor)
 
 
 # ---------------------------------------------------------------------------
@@ -273,13 +274,8 @@ def _run_fits(executor, jobs, say, test_name):
         return executor.map(_candidate_task, jobs, desc="candidates", progress=False)
     fitted = []
     for i, job in enumerate(jobs):
-        label, test, reduction, options, reference, baseline, guesses = job
-        say(f"{test_name}: fit {label} ({i + 1}/{len(jobs)})")
-        if label.startswith("form:"):
-            fitted.append(fit_model_form(label[5:], test, reduction, options, executor=executor))
-        else:
-            fitted.append(fit_candidate(label, test, reduction, options, reference=reference, baseline=baseline,
-                                        guesses=guesses, executor=executor))
+        say(f"{test_name}: fit {job[0]} ({i + 1}/{len(jobs)})")
+        fitted.append(_candidate_task(job, executor=executor))
     return fitted
 
 
@@ -327,7 +323,7 @@ def discrepancy_where(candidate: CandidateFit, phase_fit: Fit, max_regions=6, dr
     theta = theta[rng.choice(theta.shape[0], size=min(draws, theta.shape[0]), replace=False)]
     mean, sd = discrepancy_shape(model, theta)
     obs = model.obs
-    sigma = np.concatenate([np.hypot(obs.acc_sigma, obs.acc_qbar)[None], np.hypot(obs.lc_sigma, obs.lc_qbar)])
+    sigma = channel_sigma(obs)
     phases = channel_phases(phase_fit)
     names = list(phases)
     regions = []
@@ -364,7 +360,7 @@ def discrepancy_energy(candidate: CandidateFit, draws=100):
     theta = theta[np.linspace(0, theta.shape[0] - 1, min(draws, theta.shape[0])).astype(int)]
     mean, _ = discrepancy_shape(model, theta)
     obs = model.obs
-    sigma = np.concatenate([np.hypot(obs.acc_sigma, obs.acc_qbar)[None], np.hypot(obs.lc_sigma, obs.lc_qbar)])
+    sigma = channel_sigma(obs)
     return float(np.sum((mean / sigma) ** 2))
 
 
@@ -373,6 +369,8 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
     fits, first screen)."""
     named, reference, rounds, fits, first_screen = [], discrepancy, [], {}, {}
     trial = None            # a term named without a clear lead over ``trial[1]``
+    # taking the discrepancy over (the rule's second path) needs a misfit the discrepancy found to begin with
+    misfit = passes(*paired_difference(discrepancy, baseline), options)
     while len(named) < options.max_causes:
         remaining = [t for t in terms if t not in named]
         if not remaining:
@@ -389,11 +387,9 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
             first_screen = screen
         to_fit = [t for t in remaining if screen[t].passed]
         jobs = [(labels[t], test, reduction, options, reference, baseline,
-                 [screen[t].theta_map] if t in screen else None) for t in to_fit]
+                 [screen[t].theta_map]) for t in to_fit]
         fitted = dict(zip(to_fit, _run_fits(executor, jobs, say, test.name)))
         fits.update({labels[t]: f for t, f in fitted.items()})
-        # Path B of the rule needs a misfit the discrepancy found to begin with
-        misfit = passes(*paired_difference(discrepancy, baseline), options)
         reference_energy = discrepancy_energy(reference)
         checks = [check_term(t, fitted[t], reference, options, misfit=misfit,
                              share=1.0 - discrepancy_energy(fitted[t]) / reference_energy if reference_energy > 0
@@ -421,8 +417,6 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
             trial = (chosen, passing[0].term)
         named.append(chosen)
         reference = fitted[chosen]
-    if trial is not None and trial[0] in named and len(named) == options.max_causes:
-        pass   # the rival could not be tried: the cap was reached
     return named, reference, rounds, fits, first_screen
 
 

@@ -58,6 +58,11 @@ ENVELOPE_FLOOR = 0.1     # the envelope's floor: where the baseline fits, a tent
 LOO_BATCH = 64           # draws per chunk of the pointwise values (memory: batch·N·C² doubles)
 
 
+def channel_sigma(obs):
+    """Each channel's total random 1-sigma per bin (C, N): accelerometer, then the load cells."""
+    return np.concatenate([np.hypot(obs.acc_sigma, obs.acc_qbar)[None], np.hypot(obs.lc_sigma, obs.lc_qbar)])
+
+
 def spline_basis(n_bins, knot_bins=KNOT_BINS):
     """Cubic B-spline design matrix (n_bins × M), uniform knots every ``knot_bins`` bin indices."""
     intervals = max(1, int(round((n_bins - 1) / knot_bins)))
@@ -89,8 +94,7 @@ class Discrepancy(Extension):
         n, channels = obs.n_bins, 1 + obs.lc.shape[0]
         phi = spline_basis(n, self.knot_bins)                               # (N, K)
         k = phi.shape[1]
-        sigma = np.concatenate([np.hypot(obs.acc_sigma, obs.acc_qbar)[None], np.hypot(obs.lc_sigma, obs.lc_qbar)])
-        self.channel_scale = np.median(sigma, axis=1)                       # s_c (C,), m²
+        self.channel_scale = np.median(channel_sigma(obs), axis=1)                       # s_c (C,), m²
         raw = np.zeros((channels * k, channels, n))                         # basis in drag-area units
         local = np.ones((channels, n)) if self.envelope is None else self.envelope
         for c in range(channels):
@@ -182,8 +186,7 @@ def residual_envelope(model, theta, half_width=KNOT_BINS):
     """
     pred = model.predict(np.atleast_2d(theta))
     obs = model.obs
-    r = np.concatenate([((obs.acc - pred.acc[0]) / np.hypot(obs.acc_sigma, obs.acc_qbar))[None],
-                        (obs.lc - pred.lc[0]) / np.hypot(obs.lc_sigma, obs.lc_qbar)])
+    r = np.concatenate([(obs.acc - pred.acc[0])[None], obs.lc - pred.lc[0]]) / channel_sigma(obs)
     kernel = np.ones(2 * half_width + 1) / (2 * half_width + 1)
     mean_square = np.array([np.convolve(np.pad(x**2, half_width, mode="edge"), kernel, mode="valid") for x in r])
     return np.sqrt(np.maximum(mean_square - 1.0, ENVELOPE_FLOOR**2))
