@@ -1,11 +1,12 @@
 """Detection study of ``diagnose``: false alarms, power, out-of-catalogue effects and pairs.
 
     python benchmarks/detection.py [--out benchmarks/detection.csv] [--study clean,ooc,pairs,power]
-                                   [--seeds 20] [--mode screen|full] [--scenarios drogue,main]
+                                   [--seeds 20] [--mode full|screen] [--scenarios drogue,main]
 
 Each case is a synthetic test (:mod:`cpas_bayes.data.synth`) with a known
 hidden effect, diagnosed with the default rule; one row per case goes into
-the CSV as soon as it is done, so an interrupted study resumes where it
+the CSV as soon as it is done (and the case's diagnosis, without its
+residual tables, into a ``.jsonl`` beside it), so an interrupted study resumes where it
 stopped (cases already in the CSV are skipped). The summary table printed at
 the end (and written next to the CSV as ``.md``) is the README's:
 
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 import time
 from dataclasses import replace
@@ -38,7 +40,7 @@ PAIRS = ("sensor_lag+canopy_breathing", "added_mass+friction_drift", "friction_d
          "sensor_lag+added_mass")
 POWER_SIZES = {"added_mass": (0.2, 0.4), "friction_drift": (0.03, 0.05), "sensor_lag": (0.02, 0.04),
                "canopy_breathing": (0.03, 0.06)}
-FIELDS = ["study", "scenario", "effect", "magnitude", "seed", "expected", "causes", "verdict", "right",
+FIELDS = ["study", "scenario", "effect", "magnitude", "seed", "mode", "expected", "causes", "verdict", "right",
           "discrepancy_gain", "seconds"]
 
 
@@ -95,18 +97,20 @@ def run(args):
     from cpas_bayes.data.synth import synthesize
     from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER, DiagnoseOptions
     from cpas_bayes.inference.diagnose import diagnose_test
+    from cpas_bayes.outputs.diagnosis import diagnosis_document
 
     out = Path(args.out)
     done = set()
     if out.is_file():
         with out.open(newline="") as f:
-            done = {(r["study"], r["scenario"], r["effect"], r["magnitude"], r["seed"]) for r in csv.DictReader(f)}
+            done = {(r["study"], r["scenario"], r["effect"], r["magnitude"], r["seed"], r["mode"])
+                    for r in csv.DictReader(f)}
     else:
         out.parent.mkdir(parents=True, exist_ok=True)
         with out.open("w", newline="") as f:
             csv.DictWriter(f, FIELDS).writeheader()
     todo = [c for c in cases(args.study.split(","), args.seeds, args.scenarios.split(","))
-            if (c[0], c[1], c[2], "" if c[3] is None else str(c[3]), str(c[4])) not in done]
+            if (c[0], c[1], c[2], "" if c[3] is None else str(c[3]), str(c[4]), args.mode) not in done]
     print(f"{len(todo)} cases to run ({len(done)} already in {out})", flush=True)
     executor = make_executor(args.workers)
     try:
@@ -117,11 +121,14 @@ def run(args):
             t0 = time.perf_counter()
             d = diagnose_test(test, options, executor=executor)
             row = {"study": study, "scenario": scenario, "effect": effect,
-                   "magnitude": "" if magnitude is None else magnitude, "seed": seed,
+                   "magnitude": "" if magnitude is None else magnitude, "seed": seed, "mode": args.mode,
                    "expected": expected(study, effect), "causes": "+".join(d.causes) or "none",
                    "verdict": d.verdict, "right": is_right(study, effect, d.causes),
                    "discrepancy_gain": round(d.discrepancy["elpd_gain"], 1),
                    "seconds": round(time.perf_counter() - t0, 1)}
+            doc = {k: v for k, v in diagnosis_document(d).items() if k not in ("gain", "evidence", "comparison")}
+            with out.with_suffix(".jsonl").open("a") as f:   # the why of each verdict, for reading failures
+                f.write(json.dumps({**row, "diagnosis": doc}) + "\n")
             with out.open("a", newline="") as f:
                 csv.DictWriter(f, FIELDS).writerow(row)
             print(f"[{i + 1}/{len(todo)}] {study} {scenario} {effect} {magnitude or ''} seed {seed}: "
@@ -136,13 +143,14 @@ def run(args):
 def summary(path):
     import pandas as pd
 
-    d = pd.read_csv(path)
-    d["right"] = d["right"].astype(str) == "True"
-    lines = ["| study | scenario | effect | size | cases | right | rate | verdicts |", "|---|---|---|---|---|---|---|---|"]
-    for (study, scenario, effect, size), g in d.fillna({"magnitude": ""}).groupby(
-            ["study", "scenario", "effect", "magnitude"], sort=False):
+    d = pd.read_csv(path, dtype=str, keep_default_na=False)
+    d["right"] = d["right"] == "True"
+    lines = ["| study | scenario | effect | size | mode | cases | right | rate | verdicts |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for (study, scenario, effect, size, mode), g in d.groupby(
+            ["study", "scenario", "effect", "magnitude", "mode"], sort=False):
         verdicts = ", ".join(f"{k} {v}" for k, v in g["causes"].value_counts().items())
-        lines.append(f"| {study} | {scenario} | {effect} | {size} | {len(g)} | {int(g['right'].sum())} | "
+        lines.append(f"| {study} | {scenario} | {effect} | {size} | {mode} | {len(g)} | {int(g['right'].sum())} | "
                      f"{g['right'].mean():.0%} | {verdicts} |")
     return "\n".join(lines)
 
@@ -153,7 +161,8 @@ def main(argv=None):
     parser.add_argument("--study", default=",".join(STUDIES))
     parser.add_argument("--seeds", type=int, default=20, help="cases per study cell")
     parser.add_argument("--scenarios", default="drogue,main")
-    parser.add_argument("--mode", default="screen", choices=("screen", "full"))
+    parser.add_argument("--mode", default="full", choices=("screen", "full"),
+                        help="full is what `cpas-bayes diagnose` runs; screen is the campaign's default")
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args(argv)
     unknown = set(args.study.split(",")) - set(STUDIES)
