@@ -172,7 +172,7 @@ def test_every_anchor_of_the_report_resolves_and_every_image_is_on_disk(campaign
     parser.feed(page)
     internal = [h[1:] for h in parser.hrefs if h.startswith("#")]
     assert {f"test-{i}" for i in range(1, 6)} <= set(internal)
-    assert {"diagnoses", "load-comparisons", "convergence-of-the-fits"} <= set(internal)
+    assert {"diagnoses", "load-comparisons", "convergence-and-health-of-the-fits"} <= set(internal)
     assert set(internal) <= parser.ids
     # each test's anchor sits right before its own section
     for i, name in enumerate(["T-none", "T-lag"], start=1):

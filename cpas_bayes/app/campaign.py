@@ -209,19 +209,22 @@ def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
     def work(tmp):
         from cpas_bayes.inference.predictive_checks import check_report, run_checks
         from cpas_bayes.inference.fit import fit_model, prepare_model
+        from cpas_bayes.inference.fit_folder import record_checks
         from cpas_bayes.outputs.plots.fit import write_fit_figures
 
         model = prepare_model(test, reduced(), priors=config.priors, decay=config.decay)
         fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint,
                         executor=executor)
         checks = run_checks(fit, rng=config.seed)
+        warnings = record_checks(fit, checks, tmp)
         write_fit_figures(fit, tmp, checks=checks)
         write_json(tmp / "checks.json", check_report(fit, checks=checks))
         write_json(tmp / "map.json", {"names": list(model.names),
                                       "theta": [float(v) for v in fit.sampling.theta_map],
                                       "log_posterior": float(fit.sampling.log_post_map)})
         d = fit.summary["diagnostics"]
-        echo(f"    {test.name}: R-hat max {d['rhat_max']:.3f}, ESS bulk min {d['ess_bulk_min']:.0f}")
+        echo(f"    {test.name}: R-hat max {d['rhat_max']:.3f}, ESS bulk min {d['ess_bulk_min']:.0f}"
+             + (f", {len(warnings)} fit health warning(s)" if warnings else ""))
     return work
 
 

@@ -246,6 +246,8 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
     from cpas_bayes.data.bundle import read_bundle
     from cpas_bayes.data.reduction import reduce_test
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
+    from cpas_bayes.inference.fit_folder import fill_time_table, record_checks
+    from cpas_bayes.inference.predictive_checks import run_checks
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
     test = read_bundle(bundle)
@@ -257,12 +259,18 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
                   "rerun the same command to resume from it")
     with _executor(min(workers, ensembles), scheduler) as executor:
         fit = fit_model(model, options, out=out, echo=click.echo, executor=executor)
-    figures = write_fit_figures(fit, out)
+    checks = run_checks(fit, rng=0)
+    warnings = record_checks(fit, checks, out)
+    figures = write_fit_figures(fit, out, checks=checks)
     d = fit.summary["diagnostics"]
     click.echo(f"{'converged' if d['converged'] else 'NOT converged'}: R-hat max {d['rhat_max']:.4f}, "
                f"ESS bulk min {d['ess_bulk_min']:.0f}, tau max {d['tau_max']:.0f} steps, "
                f"acceptance {d['acceptance']:.2f}")
-    click.echo(f"wrote {out / 'summary.json'}, {out / 'posterior.nc'} and {len(figures)} figures")
+    click.echo(fill_time_table(fit.summary))
+    for w in warnings:
+        click.echo(f"WARNING [{w['code']}] {w['message']}")
+    click.echo(f"{len(warnings) or 'no'} fit health warning{'s' if len(warnings) != 1 else ''}; wrote "
+               f"{out / 'summary.json'}, {out / 'posterior.nc'} and {len(figures)} figures")
 
 
 @cli.command("montecarlo")

@@ -43,7 +43,7 @@ from cpas_bayes.stats.priors import prior_from_table
 SUMMARY_NAME = "summary.json"
 POSTERIOR_NAME = "posterior.nc"
 QUANTILES = (0.05, 0.5, 0.95)
-STAGE_FIELDS = ("start", "n_p", "n", "expopen", "ck", "tk", "cds", "eps")
+STAGE_FIELDS = ("start", "n_p", "n", "t_f", "t_fp", "expopen", "ck", "tk", "cds", "eps")   # t_f, t_fp in s
 
 
 def save_datatree(tree, target):
@@ -217,6 +217,30 @@ def write_summary(folder, summary):
     write_json(Path(folder) / SUMMARY_NAME, summary)
 
 
+def fill_time_table(summary):
+    """Per stage: n_p, n and the fill times t_f and t_fp in seconds (posterior medians), as text."""
+    lines = [f"{'stage':<22}{'n_p':>8}{'n':>8}{'t_f [s]':>10}{'t_fp [s]':>10}"]
+    for pid, info in summary["parachutes"].items():
+        for k, st in enumerate(info["stages"]):
+            cells = [f"{st[f]['q50']:.3g}" if isinstance(st.get(f), dict) else "-"
+                     for f in ("n_p", "n", "t_f", "t_fp")]
+            lines.append(f"{pid + ' ' + str(k + 1) + ' ' + st['label']:<22.22}{cells[0]:>8}{cells[1]:>8}"
+                         f"{cells[2]:>10}{cells[3]:>10}")
+    return "\n".join(lines)
+
+
+def record_checks(fit, checks, out=None):
+    """Add the warnings that need the fit's checks (PPC) to ``fit.summary`` and, with ``out``, rewrite
+    its ``summary.json``; returns the warnings."""
+    from cpas_bayes.inference.fit_health import fit_warnings
+
+    diagnostics = {**fit.summary["diagnostics"], "per_parameter": fit.summary["diagnostics_per_parameter"]}
+    fit.summary["warnings"] = fit_warnings(fit.model, fit.tree, diagnostics, checks.ppc.table)
+    if out is not None:
+        write_summary(out, fit.summary)
+    return fit.summary["warnings"]
+
+
 # ---------------------------------------------------------------------------
 # assembling a fit
 
@@ -338,9 +362,11 @@ def convergence(tree, sampling, rhat_max=1.01, ess_min=400):
     return out
 
 
-def build_summary(model, tree, diagnostics, options):
-    """``summary.json`` content (issue-5 schema, SI) plus priors and provenance."""
+def build_summary(model, tree, diagnostics, options, ppc_table=None):
+    """``summary.json`` content (issue-5 schema, SI) plus priors, provenance and the fit's health
+    ``warnings`` (:mod:`cpas_bayes.inference.fit_health`; the PPC ones only with ``ppc_table``)."""
     from cpas_bayes import __version__
+    from cpas_bayes.inference.fit_health import fit_warnings
 
     post = tree["posterior"]
 
@@ -373,6 +399,7 @@ def build_summary(model, tree, diagnostics, options):
         "nuisance": nuisance,
         "diagnostics": diag,
         "diagnostics_per_parameter": diagnostics.get("per_parameter", {}),
+        "warnings": fit_warnings(model, tree, diagnostics, ppc_table),
         "priors": {prm.name: prm.prior.describe() for prm in model.parameters},
         "sampler": {"seed": options.seed, "ensembles": options.n_ensembles, "walkers": options.walkers,
                     "check_every": options.check_every, "max_steps": options.max_steps},

@@ -19,8 +19,8 @@ from pathlib import Path
 
 from cpas_bayes.core.files import write_text
 from cpas_bayes.core.inputs import inside
-from cpas_bayes.outputs.report_html import (BADGE, first_screen_html, first_screen_markdown, html_page, markdown_body,
-                                            test_overview)
+from cpas_bayes.outputs.report_html import (BADGE, first_screen_html, first_screen_markdown, fit_health_messages,
+                                            html_page, markdown_body, test_overview)
 
 FORCE = {"US": "lbf", "SI": "N"}
 
@@ -67,15 +67,22 @@ def _summary_section(out, manifest, records):
 
 
 def _convergence_section(out, manifest):
-    lines = ["## Convergence of the fits", "",
-             "| test | converged | R-hat max | bulk ESS min | tail ESS min | τ max [steps] | acceptance |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["## Convergence and health of the fits", "",
+             "| test | converged | R-hat max | bulk ESS min | tail ESS min | τ max [steps] | acceptance | "
+             "health warnings |",
+             "|---|---|---|---|---|---|---|---|"]
+    listed = []
     for name in manifest["tests"]:
         s = _read(inside(out / "tests", name) / "fit" / "summary.json")
         d = s["diagnostics"]
+        health = fit_health_messages(s)
         lines.append(f"| {name} | {'yes' if d['converged'] else 'NO'} | {d['rhat_max']:.4f} | "
                      f"{d['ess_bulk_min']:.0f} | {d['ess_tail_min']:.0f} | {d['tau_max']:.0f} | "
-                     f"{d['acceptance']:.2f} |")
+                     f"{d['acceptance']:.2f} | {len(health) or 'none'} |")
+        listed += [f"* **{name}** — {m.removeprefix('fit: ')}" for m in health]
+    if listed:
+        lines += ["", "Fit health warnings (a fit can converge and still be bounded by its prior, noisier than "
+                  "its stated sigmas, or unlike its data):", ""] + listed
     return lines + [""]
 
 

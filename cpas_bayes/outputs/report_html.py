@@ -38,7 +38,7 @@ FLAG_WORDS = {
     "no_extended_fit": "a measurement cause was named but no extended fit was written: the baseline was pooled",
 }
 SECTIONS = (("diagnoses", "Diagnoses"), ("model-memo", "Memo"), ("monte-carlo-per-configuration", "Monte Carlo"),
-            ("load-comparisons", "Load comparisons"), ("convergence-of-the-fits", "Convergence"))
+            ("load-comparisons", "Load comparisons"), ("convergence-and-health-of-the-fits", "Fit health"))
 
 
 def read_doc(path):
@@ -163,6 +163,15 @@ def _peaks(doc):
     return rows
 
 
+def fit_health_messages(summary):
+    """The health warnings of a fit's ``summary.json`` (:mod:`cpas_bayes.inference.fit_health`) as text."""
+    out = []
+    for w in (summary or {}).get("warnings") or []:
+        if isinstance(w, dict) and "message" in w:
+            out.append(f"fit: {w['message']}")
+    return out
+
+
 def test_overview(out, manifest):
     """One record per test of the campaign in ``out`` (manifest order), from the files on disk only."""
     out = Path(out)
@@ -185,7 +194,8 @@ def test_overview(out, manifest):
             "name": name, "anchor": test_anchor(i), "verdict": verdict, "causes": causes,
             "sentence": sentence(verdict, causes or [], diag),
             "where": [where_words(w) for w in unexp.get("where") or [] if isinstance(w, dict)],
-            "warnings": [str(w) for w in (diag or {}).get("warnings") or []],
+            "warnings": fit_health_messages(read_doc(base / "fit" / "summary.json"))
+            + [str(w) for w in (diag or {}).get("warnings") or []],
             "pooled": "extended" if pooled.rstrip("/").endswith("extended") else ("baseline" if pooled else None),
             "flags": [str(f) for f in flags],
             "figure": figure.relative_to(out).as_posix() if figure else None,

@@ -21,6 +21,8 @@
 
 from __future__ import annotations
 
+import textwrap
+
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Patch
@@ -171,7 +173,18 @@ def plot_bands(fit, pred):
     fig.suptitle(f"{model.test.name}: reconstructed drag areas — the posterior bands of the model (its "
                  "uncertainty, not the noise)\nshould run through the middle of the points, fill, peak and decay "
                  "included; lower rows zoom on each fill", fontsize=10)
+    _health_footer(fig, fit.summary.get("warnings") or [])
     return fig
+
+
+def _health_footer(fig, warnings, shown=4):
+    """The fit's health warnings (summary.json ``warnings``) under the figure, in red; nothing when clean."""
+    if not warnings:
+        return
+    lines = [textwrap.shorten(f"[{w['code']}] {w['message']}", 190) for w in warnings[:shown]]
+    if len(warnings) > shown:
+        lines.append(f"... and {len(warnings) - shown} more in summary.json")
+    fig.supxlabel("FIT HEALTH WARNINGS\n" + "\n".join(lines), color="firebrick", fontsize=8, ha="center")
 
 
 # ---------------------------------------------------------------------------

@@ -1,0 +1,176 @@
+"""Fit health said plainly: the warnings a fit carries in ``summary.json``, the CLI and its figures.
+
+A fit can "converge" and still be wrong in ways an analyst must see before
+using it. Each warning is ``{"code", "message", "parameter"?}``; a clean fit
+has none. The checks and their thresholds:
+
+``prior_bound``
+    A posterior piled against a bound of its prior (not a physical limit such
+    as C_k = 1): the data are informative (posterior sd < ½ prior sd) and more
+    than 5 % of the draws lie within ¼ posterior sd of the bound. A normal
+    posterior whose centre sits 2 sd inside a bound puts 1.7 % there, one cut
+    by the bound 12 % or more: the bound, not the data, decides the value.
+``error_multiplier``
+    A fitted noise multiplier (posterior median) above 2: the residuals are
+    more than twice the stated 1-sigma, so either the sigmas or the model are
+    wrong, and every interval of the fit is too narrow or too wide with them.
+``ppc``
+    A posterior-predictive statistic with p < 0.001 or p > 0.999 (a clean
+    fit's 30–60 statistics land there in well under 5 % of tests; posterior
+    predictive p-values crowd towards ½), or more than two with p < 0.01 or
+    p > 0.99. Needs the fit's checks.
+``after_data_end``
+    A stage's predicted peak (start + t_fp) or the end of its decay
+    (+ t_k), posterior median, after the last data sample: the data cannot
+    see it, so its fill parameters are the prior's guess.
+``convergence``
+    R-hat above 1.01 or bulk ESS below 400 for some parameter, or an
+    ensemble that did not meet its stopping rule.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cpas_bayes.physics.inflation import stage_tag
+
+EDGE_SHARE = 0.05          # share of draws within EDGE_BAND posterior sd of a bound that counts as piled
+EDGE_BAND = 0.25
+INFORMATIVE = 0.5          # posterior sd below this share of the prior sd: the data decide
+MAX_MULTIPLIER = 2.0
+PPC_EXTREME = 0.001        # one statistic beyond this (two-sided) is a warning
+PPC_FLAG = 0.01            # ... or more than PPC_MAX_FLAGS beyond this
+PPC_MAX_FLAGS = 2
+RHAT_MAX = 1.01
+ESS_MIN = 400
+# Bounds that are physics, not a prior's choice: a posterior against them is a finding about the
+# canopy (no over-inflation), not a prior that cut the data off.
+PHYSICAL_LIMITS = {"ck": (1.0, None), "eps": (0.0, 1.0)}
+FROM_BUNDLE = ("vehicle_weight", "vehicle_cds")   # priors built from the bundle's stated values and sigmas
+MULTIPLIERS = {"noise_acc": "accelerometer", "noise_lc": "load-cell"}
+
+
+def warning(code, message, parameter=None):
+    out = {"code": code, "message": message}
+    if parameter is not None:
+        out["parameter"] = parameter
+    return out
+
+
+def _prior_sd(prior):
+    u = np.linspace(0.0005, 0.9995, 2000)
+    return float(np.std(prior.ppf(u)))
+
+
+def prior_bound_warnings(model, draws):
+    """``prior_bound`` warnings: posteriors piled against a (non-physical) bound of their prior."""
+    out = []
+    for p in model.parameters:
+        x = np.asarray(draws.get(p.name, ()), float).ravel()
+        if x.size < 10:
+            continue
+        sd = float(x.std())
+        if not np.isfinite(sd) or sd <= 0 or not sd < INFORMATIVE * _prior_sd(p.prior):
+            continue
+        physical = PHYSICAL_LIMITS.get(p.name.rsplit(".", 1)[-1], (None, None))
+        for side, bound in zip(("lower", "upper"), p.prior.support):
+            if not np.isfinite(bound) or (physical[side == "upper"] is not None
+                                          and np.isclose(bound, physical[side == "upper"])):
+                continue
+            share = float(np.mean(np.abs(x - bound) < EDGE_BAND * sd))
+            if share > EDGE_SHARE:
+                fix = ("check the stated value and sigma behind it in the bundle's test.toml"
+                       if p.name in FROM_BUNDLE or p.name.endswith(".start") else
+                       f"widen the bound in a priors file (--priors) if {bound:g} is not a physical limit")
+                out.append(warning(
+                    "prior_bound",
+                    f"{p.name} is piled against its prior's {side} bound {bound:g} (median {np.median(x):.4g}, "
+                    f"{100 * share:.0f} % of draws within {EDGE_BAND:g} sd of it): the prior, not the data, sets "
+                    f"it; {fix}", p.name))
+    return out
+
+
+def multiplier_warnings(draws):
+    out = []
+    for name, channel in MULTIPLIERS.items():
+        if name in draws:
+            m = float(np.median(draws[name]))
+            if m > MAX_MULTIPLIER:
+                out.append(warning(
+                    "error_multiplier",
+                    f"the {channel} residuals are {m:.1f}x the stated 1-sigma ({name} > {MAX_MULTIPLIER:g}): the "
+                    "stated sigmas are too small or the model misses something (run 'cpas-bayes diagnose')", name))
+    return out
+
+
+def ppc_warnings(ppc_table):
+    """``ppc`` warnings from the table of :func:`cpas_bayes.inference.predictive_checks.ppc_statistics`."""
+    p = np.asarray(ppc_table["p_value"], float)
+    two_sided = np.minimum(p, 1.0 - p)
+    ok = np.isfinite(two_sided)
+    extreme = ok & (two_sided < PPC_EXTREME)
+    flagged = ok & (two_sided < PPC_FLAG)
+    if not extreme.any() and flagged.sum() <= PPC_MAX_FLAGS:
+        return []
+    rows = ppc_table[flagged]
+    names = ", ".join(f"{r['statistic']} of {r['parachute']} stage {r['stage']} (p = {r['p_value']:.3f})"
+                      for r in rows.head(4).to_dict("records"))
+    more = f" and {len(rows) - 4} more" if len(rows) > 4 else ""
+    return [warning("ppc", f"replicated data do not look like the measured data: {names}{more}; see ppc.png")]
+
+
+def timing_warnings(model, draws, data_end):
+    """``after_data_end`` warnings: a stage whose peak or decay end falls after the last sample."""
+    out = []
+    for p in model.parachutes:
+        for k in range(len(p.stages)):
+            pre = f"{p.id}.{stage_tag(k)}"
+            start, t_fp = draws.get(f"{pre}.start"), draws.get(f"{pre}.t_fp")
+            if start is None or t_fp is None:
+                continue
+            peak = float(np.median(np.asarray(start) + np.asarray(t_fp)))
+            tk = draws.get(f"{pre}.tk")
+            end = peak + (float(np.median(tk)) if tk is not None else 0.0)
+            if peak > data_end:
+                out.append(warning("after_data_end",
+                                   f"{p.id} stage {k + 1}'s predicted peak at {peak:.2f} s is after the data end "
+                                   f"({data_end:.2f} s): its fill parameters are the prior's guess", f"{pre}.n_p"))
+            elif end > data_end and tk is not None:
+                out.append(warning("after_data_end",
+                                   f"{p.id} stage {k + 1}'s decay ends at {end:.2f} s, after the data end "
+                                   f"({data_end:.2f} s): t_k is not measured", f"{pre}.tk"))
+    return out
+
+
+def convergence_warnings(diagnostics):
+    out = []
+    per = diagnostics.get("per_parameter", {})
+    bad_rhat = [n for n, v in per.items() if v["rhat"] > RHAT_MAX]
+    low_ess = [n for n, v in per.items() if v["ess_bulk"] < ESS_MIN]
+    if bad_rhat:
+        out.append(warning("convergence", f"R-hat above {RHAT_MAX} for {', '.join(bad_rhat[:4])}"
+                           + (f" and {len(bad_rhat) - 4} more" if len(bad_rhat) > 4 else "")
+                           + ": the ensembles disagree; rerun with more steps", bad_rhat[0]))
+    if low_ess:
+        out.append(warning("convergence", f"bulk ESS below {ESS_MIN} for {', '.join(low_ess[:4])}"
+                           + (f" and {len(low_ess) - 4} more" if len(low_ess) > 4 else "")
+                           + ": too few independent draws for its intervals", low_ess[0]))
+    if not all(diagnostics.get("ensembles_converged", [True])) and not bad_rhat and not low_ess:
+        out.append(warning("convergence", "an ensemble stopped at its step limit before its stopping rule "
+                           "was met"))
+    return out
+
+
+def fit_warnings(model, tree, diagnostics, ppc_table=None):
+    """Every health warning of a fit: ``model`` (TestModel), its DataTree and convergence diagnostics
+    (:func:`cpas_bayes.inference.fit_folder.convergence`, with ``per_parameter``); PPC warnings only
+    when the table of posterior-predictive statistics is given."""
+    post = tree["posterior"]
+    draws = {name: np.asarray(post[name].values, float).ravel() for name in post.data_vars}
+    out = prior_bound_warnings(model, draws)
+    out += multiplier_warnings(draws)
+    if ppc_table is not None:
+        out += ppc_warnings(ppc_table)
+    out += timing_warnings(model, draws, float(model.obs.native_time[-1]))
+    out += convergence_warnings(diagnostics)
+    return out
