@@ -512,6 +512,7 @@ class MonteCarloResult:
             "engine": self.engine,
             "dt_s": self.options.dt,
             "decay": self.options.decay,
+            "below_previous": self.options.below_previous,
             "runtime_s": self.runtime_s,
             "runs_per_s": self.runs_per_second,
             "cpu_time_s": self.cpu_time_s,
