@@ -11,7 +11,7 @@ from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.bundle import example_bundles, read_bundle
 from cpas_bayes.inference.fit import prepare_model
 from cpas_bayes.inference.start import first_guess
-from cpas_bayes.physics.inflation import cluster_drag_area, parachute_drag_area
+from cpas_bayes.physics.inflation import DECAY_SHAPES, cluster_drag_area, parachute_drag_area
 from cpas_bayes.stats.model import Extension, TestModel
 from cpas_bayes.data.synth import truth_parameter_values
 
@@ -30,7 +30,7 @@ def _theta(model, values, rest=1.0):
     return np.array([values.get(n, rest) for n in model.names])
 
 
-@pytest.mark.parametrize("decay", ["linear", "exponential"])
+@pytest.mark.parametrize("decay", DECAY_SHAPES)
 @pytest.mark.parametrize("fill_constant", ["n_p", "n"])
 def test_compiled_kernel_equals_numpy_stage_law(decay, fill_constant):
     rng = np.random.default_rng(4)
@@ -304,7 +304,7 @@ def test_composite_cluster_inflates_in_lockstep(examples, name):
 
 
 @pytest.mark.parametrize("cluster", ["individual", "composite"])
-@pytest.mark.parametrize("decay", ["linear", "exponential"])
+@pytest.mark.parametrize("decay", DECAY_SHAPES)
 @pytest.mark.parametrize("name", ["drogue-clean", "main-clean"])
 def test_fused_likelihood_equals_numpy_for_each_decay_and_cluster_form(examples, name, decay, cluster):
     test, _, _ = examples[name]

@@ -212,7 +212,8 @@ def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
         from cpas_bayes.inference.fit_folder import record_checks
         from cpas_bayes.outputs.plots.fit import write_fit_figures
 
-        model = prepare_model(test, reduced(), priors=config.priors, decay=config.decay)
+        model = prepare_model(test, reduced(), priors=config.priors, decay=config.decay,
+                              below_previous=config.below_previous)
         fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint,
                         executor=executor)
         checks = run_checks(fit, rng=config.seed)
@@ -234,7 +235,8 @@ def load_baseline_fit(test, reduction, folder, config):
     from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, load_datatree, read_summary
 
     folder = Path(folder)
-    model = prepare_model(test, reduction, priors=config.priors, decay=config.decay)
+    model = prepare_model(test, reduction, priors=config.priors, decay=config.decay,
+                          below_previous=config.below_previous)
     fix = f"delete {folder} so that the campaign refits the test, and re-run the campaign"
     m = read_json(folder / "map.json", fix, what="MAP file")
     theta, lp = m.get("theta"), m.get("log_posterior")
@@ -260,7 +262,8 @@ def _diagnose_work(test, reduced, config, fit_folder, echo, executor=None):
 
         fit = load_baseline_fit(test, reduced(), fit_folder, config)
         options = DiagnoseOptions(seed=config.seed, candidates=tuple(config.candidates), priors=config.priors,
-                                  decay=config.decay, mode=config.diagnose, model_forms=config.model_forms,
+                                  decay=config.decay, below_previous=config.below_previous, mode=config.diagnose,
+                                  model_forms=config.model_forms,
                                   sampler=replace(DIAGNOSIS_SAMPLER, workers=config.workers, progress=False))
         d = diagnose_test(test, options, reduction=reduced(), baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
         write_diagnosis(d, tmp)
@@ -481,6 +484,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
         bundle_key = _digest(folder_digest(path), __version__)
         fit_opts = {k: options[k] for k in ("seed", "decay", "fit_ensembles", "fit_max_steps", "fit_tau_factor",
                                             "fit_check_every")}
+        if config.below_previous != CampaignConfig.below_previous:   # keyed only when set: default keys unchanged
+            fit_opts["below_previous"] = config.below_previous
         fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
         if config.diagnose != "off":
             diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))

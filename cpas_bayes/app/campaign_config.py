@@ -13,6 +13,7 @@ from pathlib import Path
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.inputs import did_you_mean, read_toml
 from cpas_bayes.inference.fit import SamplerOptions
+from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
 from cpas_bayes.stats.model_terms import EXTENSIONS
 
 CONFIG_NAME = "campaign.toml"
@@ -25,7 +26,8 @@ class CampaignConfig:
     name: str | None = None               # report title; default the folder name
     seed: int = 0
     priors: str | None = None             # TOML replacing default priors (path relative to the config file)
-    decay: str = "linear"
+    decay: str = "linear"                 # post-peak decay shape (inflation.DECAY_SHAPES)
+    below_previous: str = "drop"          # a stage not above the held drag area: "drop" or "hold" (NASA CML)
     fit_ensembles: int = 4
     fit_max_steps: int = 20000
     fit_tau_factor: float = 50.0
@@ -46,7 +48,8 @@ class CampaignConfig:
 
 # TOML layout: top-level keys and tables mapping onto CampaignConfig fields.
 _TOML_KEYS = {
-    (): {"name": "name", "seed": "seed", "priors": "priors", "decay": "decay", "workers": "workers"},
+    (): {"name": "name", "seed": "seed", "priors": "priors", "decay": "decay", "below_previous": "below_previous",
+         "workers": "workers"},
     ("fit",): {"ensembles": "fit_ensembles", "max_steps": "fit_max_steps", "tau_factor": "fit_tau_factor",
                "check_every": "fit_check_every"},
     ("diagnose",): {"mode": "diagnose", "candidates": "candidates", "model_forms": "model_forms"},
@@ -60,7 +63,8 @@ CONFIG_EXAMPLE = """\
 name = "EDU Drogue and Main campaign"
 seed = 0
 # priors = "my_priors.toml"   # replaces tables of priors/*.toml
-decay = "linear"              # or "exponential"
+decay = "linear"              # or "exponential" (DCLDYN), "cml_linear" (NASA CML: jump to the peak at t_f)
+below_previous = "drop"       # a stage below the held drag area drops to its own; "hold" keeps it (NASA CML)
 workers = 2                   # local processes: 1 to max(4, 2 × cores)
 
 [fit]
@@ -83,6 +87,12 @@ runs = 2000
 [pool]
 draws = 10000                 # 100–1,000,000
 """
+
+
+def _quoted(names):
+    """``"a", "b" or "c"``: the valid values of a key, as the messages say them."""
+    quoted = [f'"{n}"' for n in names]
+    return ", ".join(quoted[:-1]) + " or " + quoted[-1]
 
 
 def load_config(path) -> CampaignConfig:
@@ -125,8 +135,11 @@ def load_config(path) -> CampaignConfig:
                        "\"full\" or \"off\"")
         elif name == "model_forms" and not isinstance(value, bool):
             problem = f"{value!r:.40} is not true or false"
-        elif name == "decay" and value not in ("linear", "exponential"):
-            problem = f"{value!r:.40} is not \"linear\" or \"exponential\""
+        elif name == "decay" and value not in DECAY_SHAPES:
+            problem = f"{value!r:.40}{did_you_mean(str(value), DECAY_SHAPES)} is not one of {_quoted(DECAY_SHAPES)}"
+        elif name == "below_previous" and value not in BELOW_PREVIOUS_RULES:
+            problem = (f"{value!r:.40}{did_you_mean(str(value), BELOW_PREVIOUS_RULES)} is not one of "
+                       f"{_quoted(BELOW_PREVIOUS_RULES)}")
         elif name in ("name", "priors") and (not isinstance(value, str) or not value.strip()):
             problem = f"{value!r:.40} is not a text"
         if problem:

@@ -29,6 +29,7 @@ from cpas_bayes.data.bundle import KINDS, read_bundle, summary
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.ownership import output_error
 from cpas_bayes.app.campaign_config import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
+from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
 from cpas_bayes.app.options import (BATCH, ENSEMBLES, RUNS, SEED, WORKERS, check_scheduler, out_option,
                                     priors_option, seed_option)
 
@@ -232,12 +233,16 @@ def synth_command(scenario, effect, magnitude, seed, out):
 @out_option("Folder for the fit's outputs.", required=True)
 @seed_option("Seed of the MAP starts and the sampler.")
 @priors_option()
-@click.option("--decay", type=click.Choice(["linear", "exponential"]), default="linear", show_default=True,
-              help="Shape of the drag-area decay after the over-inflation peak.")
+@click.option("--decay", type=click.Choice(DECAY_SHAPES), default="linear", show_default=True,
+              help="Shape of the drag-area decay after the over-inflation peak; cml_linear is NASA CML's linear "
+                   "mode (growth stops at t_f, jumps to the peak there, ramps down over t_k).")
+@click.option("--below-previous", type=click.Choice(BELOW_PREVIOUS_RULES), default="drop", show_default=True,
+              help="A stage whose drag area is below the one held when it starts: drop to its own value, or hold "
+                   "the held one (NASA CML).")
 @parallel_options(what="ensembles")
 @click.option("--ensembles", type=ENSEMBLES, default=4, show_default=True,
               help="Independent emcee ensembles (R-hat).")
-def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles):
+def fit_command(bundle, out, seed, priors, decay, below_previous, workers, scheduler, ensembles):
     """Posterior of every inflation parameter of one flight test (emcee).
 
     Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
@@ -253,8 +258,9 @@ def fit_command(bundle, out, seed, priors, decay, workers, scheduler, ensembles)
     test = read_bundle(bundle)
     _check_priors([p.kind for p in test.parachutes], priors)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
-    click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}")
-    model = prepare_model(test, reduce_test(test), priors=priors, decay=decay)
+    click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}, "
+               f"stage below previous: {below_previous}")
+    model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous)
     _on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
                   "rerun the same command to resume from it")
     with _executor(min(workers, ensembles), scheduler) as executor:

@@ -55,6 +55,7 @@ class DiagnoseOptions:
     sampler: SamplerOptions = DIAGNOSIS_SAMPLER
     priors: object = None
     decay: str = "linear"
+    below_previous: str = "drop"     # the stage law's rule for a stage below the held drag area
     mode: str = "full"               # "screen" also needs a term's size at its MAP beyond the practical floor
     screen_gain: float = 5.0         # a term is sampled when its MAP log posterior rises by more than this
     max_causes: int = 3              # forward selection stops after this many named terms
@@ -165,7 +166,8 @@ def _model_for(label, test, reduction, options, baseline, **model_options):
             envelope = residual_envelope(baseline.fit.model, baseline.fit.sampling.theta_map)
         extensions.append(Discrepancy(envelope=envelope))
     return prepare_model(test, reduction, options.priors, model_options.pop("decay", options.decay),
-                         extensions=extensions, **model_options)
+                         extensions=extensions,
+                         below_previous=model_options.pop("below_previous", options.below_previous), **model_options)
 
 
 def start_guesses(model, reference):
@@ -205,7 +207,7 @@ def fit_candidate(label, test, reduction, options: DiagnoseOptions, reference=No
     index = candidate_seed_index(label) if index is None else index
     sampler = replace(options.sampler, seed=int(np.random.default_rng([options.seed, index]).integers(2**31 - 1)))
     if label == BASELINE:
-        model = prepare_model(test, reduction, options.priors, options.decay)
+        model = prepare_model(test, reduction, options.priors, options.decay, below_previous=options.below_previous)
         fit = fit_model(model, sampler, echo=echo, executor=executor)
     else:
         model = _model_for(label, test, reduction, options, baseline)
@@ -228,7 +230,7 @@ def fit_model_form(form, test, reduction, options: DiagnoseOptions, echo=None, e
     sampler = replace(options.sampler, seed=int(np.random.default_rng([options.seed, index]).integers(2**31 - 1)))
     kwargs = dict(MODEL_FORMS[form])
     decay = kwargs.pop("decay", options.decay)
-    model = prepare_model(test, reduction, options.priors, decay, **kwargs)
+    model = prepare_model(test, reduction, options.priors, decay, below_previous=options.below_previous, **kwargs)
     fit = fit_model(model, sampler, echo=echo, executor=executor)
     return CandidateFit(name=form, fit=fit, loo=psis_loo(fit.tree), seconds=_time.perf_counter() - started)
 

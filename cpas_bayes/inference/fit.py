@@ -344,12 +344,13 @@ class Fit:
 
 
 def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), native_rate=False,
-                  cluster="individual"):
+                  cluster="individual", below_previous="drop"):
     """The :class:`TestModel` of a test from its reduction (:func:`cpas_bayes.data.reduction.reduce_test`).
 
     The reduction is an argument, not redone here: a command reduces a bundle
     once and builds every model it needs (baseline, extensions) from that.
-    ``decay`` is one of :data:`cpas_bayes.physics.inflation.DECAY_SHAPES`; ``cluster``
+    ``decay`` is one of :data:`cpas_bayes.physics.inflation.DECAY_SHAPES` and ``below_previous``
+    one of :data:`~cpas_bayes.physics.inflation.BELOW_PREVIOUS_RULES`; ``cluster``
     "individual" (each parachute its own inflation) or "composite" (parachutes of one
     kind in lockstep, see :mod:`cpas_bayes.stats.cluster_form`).
     """
@@ -358,7 +359,8 @@ def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), n
 
     kind_priors, nuisance = load_test_priors([p.kind for p in test.parachutes], priors)
     obs = build_observations(test, reduction.frame, native_rate=native_rate)
-    return TestModel(test, obs, kind_priors, nuisance, decay=decay, extensions=extensions, cluster=cluster)
+    return TestModel(test, obs, kind_priors, nuisance, decay=decay, extensions=extensions, cluster=cluster,
+                     below_previous=below_previous)
 
 
 def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=None, echo=None,
@@ -387,10 +389,10 @@ def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=
 
 
 def fit_test(test, options: SamplerOptions = SamplerOptions(), out=None, priors=None, decay="linear",
-             extensions=(), echo=None, cluster="individual") -> Fit:
+             extensions=(), echo=None, cluster="individual", below_previous="drop") -> Fit:
     """Reduce, model and sample one flight test (the baseline model unless extensions are given)."""
     from cpas_bayes.data.reduction import reduce_test
 
     model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, extensions=extensions,
-                          cluster=cluster)
+                          cluster=cluster, below_previous=below_previous)
     return fit_model(model, options, out, echo)

@@ -312,7 +312,7 @@ def build_datatree(model, sampling, rng, budget=1000):
     tree["posterior_predictive"] = tree["posterior_predictive"].to_dataset().assign_coords(draw=ll_idx)
     tree["posterior"] = tree["posterior"].to_dataset().assign_coords(ensemble=("chain", ensemble))
     tree.attrs.update({"test": model.test.name, "model": model.name, "decay": model.decay,
-                       "cluster": model.cluster})
+                       "below_previous": model.below_previous, "cluster": model.cluster})
     return tree
 
 
@@ -392,6 +392,7 @@ def build_summary(model, tree, diagnostics, options, ppc_table=None):
         "test": model.test.name,
         "model": model.name,
         "decay": model.decay,
+        "below_previous": model.below_previous,
         "cluster": model.cluster,
         "units": "SI",
         "bundle_units": model.test.units.name,

@@ -9,6 +9,10 @@ Fig. 21–22). :func:`compare_fill_time_dispersion` runs the same Monte Carlo
 and memo stage, the peak fill times outside the range seen in the pooled
 tests (the memo's ``t_fp`` bounds). :mod:`cpas_bayes.outputs.montecarlo`
 writes the result (``np_vs_n.json``, ``fill_time_np_vs_n.png``).
+
+Under NASA CML's linear mode (``decay="cml_linear"``) the growth ends at the
+peak: t_fp = t_f and n = n_p (:func:`cpas_bayes.physics.inflation.peak_exponent`),
+so the factor S^(1/expopen) that the claim is about is not there.
 """
 
 from __future__ import annotations

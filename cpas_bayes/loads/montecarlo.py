@@ -50,7 +50,10 @@ memo's ``<stage>.n`` entry independently of the other parameters; t_fp then
 picks up the factor S^(1/expopen) of C_k and expopen drawn apart from n,
 which is how Monte Carlo runs produced peak fill times no test showed (seed
 Fig. 21–22; measured by :mod:`cpas_bayes.loads.fill_time`). V_i is the
-simulated airspeed at the run's own stage start.
+simulated airspeed at the run's own stage start. Under NASA CML's linear mode
+(``SimulationOptions(decay="cml_linear")``) the peak is at t_f: the exponent
+1/expopen above is 0, so t_fp = t_f and n = n_p, and the two modes differ only
+by the memo entries they draw from.
 
 Results (:class:`MonteCarloResult`)
 -----------------------------------
@@ -512,6 +515,7 @@ class MonteCarloResult:
             "engine": self.engine,
             "dt_s": self.options.dt,
             "decay": self.options.decay,
+            "below_previous": self.options.below_previous,
             "runtime_s": self.runtime_s,
             "runs_per_s": self.runs_per_second,
             "cpu_time_s": self.cpu_time_s,

@@ -44,8 +44,12 @@ relative error ~1e-9). It keeps no full histories, so a batch costs memory
 for its outputs only. It also takes each canopy's drag-area peak instant
 t_i + t_fp as an extra evaluation point (a partial RK4 step from the last
 step), so the sharp corner of an infinite-mass peak is not missed between
-samples. ``"auto"`` (default) uses the compiled engine unless added mass or
-breathing is switched on in ``options``. Tests hold the two engines equal.
+samples (under ``decay="cml_linear"`` that instant is t_f, where the drag area
+jumps to its peak). The stage law's options (``options.decay``,
+``options.below_previous``) reach the compiled loop as the integer codes of
+:mod:`cpas_bayes.physics.inflation`. ``"auto"`` (default) uses the compiled
+engine unless added mass or breathing is switched on in ``options``. Tests
+hold the two engines equal.
 """
 
 from __future__ import annotations
@@ -56,7 +60,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from cpas_bayes.physics.inflation import compiled_stage_drag_area
+from cpas_bayes.physics.inflation import (DECAY_LINEAR, BELOW_PREVIOUS_DROP, below_previous_code,
+                                          compiled_peak_exponent, compiled_stage_drag_area, decay_code)
 from cpas_bayes.physics.trajectory import (ClusterParameters, SimulationOptions, VehicleProperties, VehicleState0,
                                            simulate)
 
@@ -159,7 +164,7 @@ def _derivatives(v, gamma, alt, cds_sum, total_weight, vehicle_cds, prf, gravity
 
 
 @numba.njit(cache=True)
-def _cluster_cds(t, b, par, timing, n_stages, linear, out):
+def _cluster_cds(t, b, par, timing, n_stages, decay, below_previous, out):
     """Each canopy's drag area at time t into ``out`` (the active stage's law, 0 before the first start); Σ."""
     total = 0.0
     for p in range(out.shape[0]):
@@ -171,14 +176,14 @@ def _cluster_cds(t, b, par, timing, n_stages, linear, out):
         if k >= 0:
             value = compiled_stage_drag_area(t - par[b, p, k, _START], timing[b, p, k, _HELD], par[b, p, k, _CDS],
                                              timing[b, p, k, _T_F], timing[b, p, k, _T_FP], par[b, p, k, _EXPOPEN],
-                                             par[b, p, k, _CK], par[b, p, k, _TK], linear)
+                                             par[b, p, k, _CK], par[b, p, k, _TK], decay, below_previous)
         out[p] = value
         total += value
     return total
 
 
 @numba.njit(cache=True)
-def _begin_stage(b, p, k, v_stage, par, timing, diameter, fill_is_np, linear):
+def _begin_stage(b, p, k, v_stage, par, timing, diameter, fill_is_np, decay, below_previous):
     """Stage k of canopy p starts at airspeed V_i: held drag area, S, n ↔ n_p (Eq. 17/18), t_f (Eq. 14), t_fp (Eq. 15).
 
     The same arithmetic as :func:`cpas_bayes.physics.inflation.parachute_drag_area`.
@@ -190,21 +195,21 @@ def _begin_stage(b, p, k, v_stage, par, timing, diameter, fill_is_np, linear):
                                         timing[b, p, k - 1, _HELD], par[b, p, k - 1, _CDS],
                                         timing[b, p, k - 1, _T_F], timing[b, p, k - 1, _T_FP],
                                         par[b, p, k - 1, _EXPOPEN], par[b, p, k - 1, _CK], par[b, p, k - 1, _TK],
-                                        linear)
+                                        decay, below_previous)
     cds_i = par[b, p, k, _CDS]
     growth = cds_i - held
     ratio = (par[b, p, k, _CK] * cds_i - held) / growth if growth > 0.0 else 1.0
-    e = par[b, p, k, _EXPOPEN]
+    e = compiled_peak_exponent(par[b, p, k, _EXPOPEN], decay)   # t_fp/t_f = n_p/n = S^e
     if fill_is_np:
         n_p = par[b, p, k, _FILL]
-        n = n_p * ratio ** (-1.0 / e)
+        n = n_p * ratio ** (-e)
     else:
         n = par[b, p, k, _FILL]
-        n_p = n * ratio ** (1.0 / e)
+        n_p = n * ratio ** e
     t_f = n * diameter[p] * math.sqrt(max(growth, 0.0) / par[b, p, k, _CDS_O]) / v_stage
     timing[b, p, k, _HELD] = held
     timing[b, p, k, _T_F] = t_f
-    timing[b, p, k, _T_FP] = t_f * ratio ** (1.0 / e) if t_f > 0.0 else 0.0
+    timing[b, p, k, _T_FP] = t_f * ratio ** e if t_f > 0.0 else 0.0
     timing[b, p, k, _N] = n
     timing[b, p, k, _N_P] = n_p
     timing[b, p, k, _V_I] = v_stage
@@ -231,8 +236,9 @@ def _update_peaks(b, t, tension, total, par, n_stages, cluster_start, stage_peak
 
 
 @numba.njit(cache=True)
-def _simulate_run(b, t0, h, n_steps, record_every, runs, chute_weight, diameter, par, n_stages, fill_is_np, linear,
-                  prf, gravity, base, step, table, cluster_start, timing, stage_peaks, chute_peaks, history, status):
+def _simulate_run(b, t0, h, n_steps, record_every, runs, chute_weight, diameter, par, n_stages, fill_is_np, decay,
+                  below_previous, prf, gravity, base, step, table, cluster_start, timing, stage_peaks, chute_peaks,
+                  history, status):
     """Integrate run b (RK4, the trajectory module's step rules) and record its peaks, timing and history."""
     P = par.shape[1]
     K = par.shape[2]
@@ -258,7 +264,7 @@ def _simulate_run(b, t0, h, n_steps, record_every, runs, chute_weight, diameter,
                 record_step[p, k] = int(math.ceil((start - t0) / h)) - 1
             else:
                 # Started at or before t0: V_i = V0, as in the trajectory module.
-                _begin_stage(b, p, k, v, par, timing, diameter, fill_is_np, linear)
+                _begin_stage(b, p, k, v, par, timing, diameter, fill_is_np, decay, below_previous)
                 if timing[b, p, k, _T_FP] > 0.0:
                     corner[p, k] = start + timing[b, p, k, _T_FP]
     next_record = n_steps + 1
@@ -270,7 +276,7 @@ def _simulate_run(b, t0, h, n_steps, record_every, runs, chute_weight, diameter,
     for p in range(P):
         for k in range(n_stages[p]):
             next_corner = min(next_corner, corner[p, k])
-    cds_sum = _cluster_cds(t0, b, par, timing, n_stages, linear, cds)
+    cds_sum = _cluster_cds(t0, b, par, timing, n_stages, decay, below_previous, cds)
     H = history.shape[0]
     for n in range(n_steps + 1):
         t_n = t0 + n * h
@@ -294,15 +300,16 @@ def _simulate_run(b, t0, h, n_steps, record_every, runs, chute_weight, diameter,
                 for k in range(n_stages[p]):
                     if record_step[p, k] == n:
                         start = par[b, p, k, _START]
-                        _begin_stage(b, p, k, v + (start - t_n) * a1, par, timing, diameter, fill_is_np, linear)
+                        _begin_stage(b, p, k, v + (start - t_n) * a1, par, timing, diameter, fill_is_np, decay,
+                                     below_previous)
                         if timing[b, p, k, _T_FP] > 0.0:
                             corner[p, k] = start + timing[b, p, k, _T_FP]
                             next_corner = min(next_corner, corner[p, k])
                     elif record_step[p, k] > n and record_step[p, k] < next_record:
                         next_record = record_step[p, k]
         t_end = t0 + h * (n + 1.0)
-        sum_mid = _cluster_cds(t0 + h * (n + 0.5), b, par, timing, n_stages, linear, cds_mid)
-        sum_end = _cluster_cds(t_end, b, par, timing, n_stages, linear, cds_end)
+        sum_mid = _cluster_cds(t0 + h * (n + 0.5), b, par, timing, n_stages, decay, below_previous, cds_mid)
+        sum_end = _cluster_cds(t_end, b, par, timing, n_stages, decay, below_previous, cds_end)
         if next_corner < t_end:
             # Drag-area peaks inside this step: a partial RK4 step to each exact instant.
             next_corner = np.inf
@@ -315,12 +322,12 @@ def _simulate_run(b, t0, h, n_steps, record_every, runs, chute_weight, diameter,
                     if not tc > t_n or (k + 1 < n_stages[p] and tc >= par[b, p, k + 1, _START]):
                         continue
                     d = tc - t_n
-                    s_a = _cluster_cds(t_n + 0.5 * d, b, par, timing, n_stages, linear, cds_a)
+                    s_a = _cluster_cds(t_n + 0.5 * d, b, par, timing, n_stages, decay, below_previous, cds_a)
                     a2, g2, c2, _, _ = _derivatives(v + d / 2 * a1, gam + d / 2 * g1, alt + d / 2 * c1, s_a,
                                                     total_weight, cds_v, prf, gravity, base, step, table)
                     a3, g3, c3, _, _ = _derivatives(v + d / 2 * a2, gam + d / 2 * g2, alt + d / 2 * c2, s_a,
                                                     total_weight, cds_v, prf, gravity, base, step, table)
-                    s_b = _cluster_cds(tc, b, par, timing, n_stages, linear, cds_a)
+                    s_b = _cluster_cds(tc, b, par, timing, n_stages, decay, below_previous, cds_a)
                     a4, g4, c4, _, _ = _derivatives(v + d * a3, gam + d * g3, alt + d * c3, s_b, total_weight,
                                                     cds_v, prf, gravity, base, step, table)
                     vc = v + d / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
@@ -352,12 +359,13 @@ def _simulate_run(b, t0, h, n_steps, record_every, runs, chute_weight, diameter,
 
 
 @numba.njit(cache=True, parallel=True)
-def _simulate_batch(t0, h, n_steps, record_every, runs, chute_weight, diameter, par, n_stages, fill_is_np, linear,
-                    prf, gravity, base, step, table, cluster_start, timing, stage_peaks, chute_peaks, history, status):
+def _simulate_batch(t0, h, n_steps, record_every, runs, chute_weight, diameter, par, n_stages, fill_is_np, decay,
+                    below_previous, prf, gravity, base, step, table, cluster_start, timing, stage_peaks, chute_peaks,
+                    history, status):
     for b in numba.prange(par.shape[0]):
         _simulate_run(b, t0, h, n_steps, record_every, runs, chute_weight, diameter, par, n_stages, fill_is_np,
-                      linear, prf, gravity, base, step, table, cluster_start, timing, stage_peaks, chute_peaks,
-                      history, status)
+                      decay, below_previous, prf, gravity, base, step, table, cluster_start, timing, stage_peaks,
+                      chute_peaks, history, status)
 
 
 _ENGINE_READY = False  # per process: the compiled engine has been loaded
@@ -375,8 +383,8 @@ def ensure_compiled():
     par = np.zeros((1, 1, 1, 7))
     par[..., _CDS] = par[..., _CDS_O] = par[..., _FILL] = par[..., _EXPOPEN] = par[..., _CK] = 1.0
     runs = np.array([[1.0, 0.0, 0.0, 1.0, 0.0]])
-    _simulate_batch(0.0, 0.01, 1, 1, runs, np.zeros(1), np.ones(1), par, np.ones(1, dtype=np.int64), True, True,
-                    1.0, 9.80665, -10.0, 1.0, np.ones(21), np.zeros((1, 1)), np.full((1, 1, 1, 6), np.nan),
+    _simulate_batch(0.0, 0.01, 1, 1, runs, np.zeros(1), np.ones(1), par, np.ones(1, dtype=np.int64), True,
+                    DECAY_LINEAR, BELOW_PREVIOUS_DROP, 1.0, 9.80665, -10.0, 1.0, np.ones(21), np.zeros((1, 1)), np.full((1, 1, 1, 6), np.nan),
                     np.zeros((1, 1, 3)), np.zeros((1, 1, 1, 2)), np.zeros((0, 2)), np.zeros(1, dtype=np.int64))
     _ENGINE_READY = True
 
@@ -425,8 +433,8 @@ def _fly_compiled(state0: VehicleState0, vehicle: VehicleProperties, cluster: Cl
                     np.ascontiguousarray(np.broadcast_to(np.asarray(cluster.weight, float), (P,))),
                     np.ascontiguousarray(np.broadcast_to(np.asarray(cluster.diameter, float), (P,))),
                     par, np.asarray(stages_per_chute, dtype=np.int64), cluster.fill_constant == "n_p",
-                    options.decay == "linear", float(options.prf), float(options.gravity), float(base), float(step),
-                    table, np.ascontiguousarray(cluster_stage_starts(start, stages_per_chute)), timing, stage_peaks,
+                    decay_code(options.decay), below_previous_code(options.below_previous), float(options.prf),
+                    float(options.gravity), float(base), float(step), table, np.ascontiguousarray(cluster_stage_starts(start, stages_per_chute)), timing, stage_peaks,
                     chute_peaks, history, status)
     if status.any():
         raise ValueError(f"{int(status.sum())} run(s) left the density table or stopped (airspeed ≤ 0); "

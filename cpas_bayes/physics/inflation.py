@@ -29,22 +29,44 @@ Growth for 0 ≤ τ < t_fp (τ = time since the stage started)::
     CDS(τ) = CDS_start + (CDS_i − CDS_start) · (τ / t_f)^expopen
 
 which passes CDS_i at t_f and reaches C_k·CDS_i at t_fp. Decay to CDS_i over
-t_k after the peak, either a linear ramp (the papers' "ramp-down time") or the
-exponential form C_k·CDS_i·C_k^(−(τ−t_fp)/t_k) of NASA's DCLDYN model; both end
-exactly at CDS_i at τ = t_fp + t_k.
+t_k after the peak (``decay``, one of :data:`DECAY_SHAPES`):
+
+* ``"linear"`` (default): a linear ramp from C_k·CDS_i (the papers' "ramp-down
+  time");
+* ``"exponential"``: C_k·CDS_i·C_k^(−(τ−t_fp)/t_k), the form of NASA's DCLDYN
+  model;
+* ``"cml_linear"``: NASA CML's linear mode. The growth law stops at t_f (at
+  CDS_i), the drag area JUMPS to C_k·CDS_i there and ramps linearly down to
+  CDS_i over t_k: the peak is at t_f, so ``t_fp = t_f``.
+
+All three end exactly at CDS_i at τ = t_fp + t_k.
 
 Re-parameterisation (Eq. 16–18)::
 
     n_p = n · S^(1/expopen)          n = n_p · S^(−1/expopen)
 
 so that n_p fixes the time to the peak drag area: t_fp = n_p·D_o·sqrt(...)/V_i.
+Under ``"cml_linear"`` the growth ends at the peak instant t_f, so the same
+statement gives ``n_p = n`` (the exponent 1/expopen becomes 0, see
+:func:`peak_exponent`): the sampled and dispersed parameter stays n_p, still
+the fill distance to the peak, and t_fp = t_f = n_p·D_o·sqrt(...)/V_i.
 
-Finite-mass stages use the same law with C_k = 1 (then S = 1 and n = n_p).
+Finite-mass stages use the same law with C_k = 1 (then S = 1, n = n_p and the
+three decay shapes coincide).
 
 Retain-at-disreef (seed Fig. 29): a stage starts from the drag area actually
 held at its start, so a stage cut short by the next disreef gives no
 discontinuity. A stage whose drag area is not above the held one (nothing to
-fill) has zero fill time and snaps to its own value.
+fill) has zero fill time; what it shows then is ``below_previous`` (one of
+:data:`BELOW_PREVIOUS_RULES`): ``"drop"`` (default) snaps to its own value,
+``"hold"`` (NASA CML) keeps the larger drag area already held.
+
+Peer semantics: NASA's CML chute model, run side by side on 35 cases, matches
+the ``"exponential"`` decay to its time step; its linear mode and its rule for
+a stage below the held area are ``decay="cml_linear"`` and
+``below_previous="hold"`` here. The compiled kernels (this module's, the
+Monte Carlo engine's, the fused likelihood's) take the integer codes of
+:data:`DECAY_CODES` and :data:`BELOW_PREVIOUS_CODES`.
 """
 
 from __future__ import annotations
@@ -53,7 +75,28 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DECAY_SHAPES = ("linear", "exponential")
+# The one place the option names map to the integer codes the compiled kernels take.
+DECAY_LINEAR, DECAY_EXPONENTIAL, DECAY_CML_LINEAR = 0, 1, 2
+DECAY_CODES = {"linear": DECAY_LINEAR, "exponential": DECAY_EXPONENTIAL, "cml_linear": DECAY_CML_LINEAR}
+DECAY_SHAPES = tuple(DECAY_CODES)
+
+BELOW_PREVIOUS_DROP, BELOW_PREVIOUS_HOLD = 0, 1
+BELOW_PREVIOUS_CODES = {"drop": BELOW_PREVIOUS_DROP, "hold": BELOW_PREVIOUS_HOLD}
+BELOW_PREVIOUS_RULES = tuple(BELOW_PREVIOUS_CODES)
+
+
+def decay_code(decay):
+    """Integer code of the decay shape ``decay``; ValueError naming :data:`DECAY_SHAPES` for anything else."""
+    if not isinstance(decay, str) or decay not in DECAY_CODES:
+        raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+    return DECAY_CODES[decay]
+
+
+def below_previous_code(below_previous):
+    """Integer code of a stage-below-previous rule; ValueError naming :data:`BELOW_PREVIOUS_RULES` otherwise."""
+    if not isinstance(below_previous, str) or below_previous not in BELOW_PREVIOUS_CODES:
+        raise ValueError(f"below_previous must be one of {BELOW_PREVIOUS_RULES}, got {below_previous!r}")
+    return BELOW_PREVIOUS_CODES[below_previous]
 
 
 # ---------------------------------------------------------------------------
@@ -92,35 +135,48 @@ def overinflation_ratio(ck, cds_i, cds_start):
     return np.where(growth > 0, (ck * cds_i - cds_start) / safe, 1.0)
 
 
-def peak_fill_time(t_f, ratio, expopen):
-    """Eq. 15: t_fp = t_f · S^(1/expopen)."""
-    return t_f * ratio ** (1.0 / expopen)
+def peak_exponent(expopen, decay="linear"):
+    """The exponent e of t_fp/t_f = n_p/n = S^e (Eq. 15–18).
+
+    1/expopen where the growth law runs on from CDS_i to the peak; 0 under
+    ``"cml_linear"``, whose growth stops at t_f and jumps to the peak there.
+    """
+    if decay_code(decay) == DECAY_CML_LINEAR:
+        return 0.0
+    return 1.0 / expopen
 
 
-def n_p_from_n(n, ratio, expopen):
-    """Eq. 17: fill distance to the peak drag area."""
-    return n * ratio ** (1.0 / expopen)
+def peak_fill_time(t_f, ratio, expopen, decay="linear"):
+    """Eq. 15: t_fp = t_f · S^(1/expopen) (t_f under ``"cml_linear"``)."""
+    return t_f * ratio ** peak_exponent(expopen, decay)
 
 
-def n_from_n_p(n_p, ratio, expopen):
-    """Eq. 18: fill constant for a simulation given a dispersed n_p."""
-    return n_p * ratio ** (-1.0 / expopen)
+def n_p_from_n(n, ratio, expopen, decay="linear"):
+    """Eq. 17: fill distance to the peak drag area (n itself under ``"cml_linear"``)."""
+    return n * ratio ** peak_exponent(expopen, decay)
 
 
-def stage_drag_area(tau, cds_start, cds_i, t_f, expopen, ck, t_k, decay="linear"):
+def n_from_n_p(n_p, ratio, expopen, decay="linear"):
+    """Eq. 18: fill constant for a simulation given a dispersed n_p (n_p itself under ``"cml_linear"``)."""
+    return n_p * ratio ** -peak_exponent(expopen, decay)
+
+
+def stage_drag_area(tau, cds_start, cds_i, t_f, expopen, ck, t_k, decay="linear", below_previous="drop"):
     """Drag area ``tau`` seconds after a stage starts (tau ≥ 0).
 
-    All arguments broadcast together. ``t_f`` ≤ 0 means a skipped stage: the
-    drag area is CDS_i at once. ``decay`` is ``"linear"`` or ``"exponential"``.
+    All arguments broadcast together. ``t_f`` ≤ 0 means a stage with nothing
+    to fill: its drag area is CDS_i at once, or under ``below_previous="hold"``
+    the larger of CDS_i and the held CDS_start. ``decay`` is one of
+    :data:`DECAY_SHAPES`.
     """
-    if decay not in DECAY_SHAPES:
-        raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+    code = decay_code(decay)
+    hold = below_previous_code(below_previous) == BELOW_PREVIOUS_HOLD
     tau = np.asarray(tau, float)
     cds_i = np.asarray(cds_i, float)
     filling = t_f > 0
     safe_tf = np.where(filling, t_f, 1.0)
     ratio = overinflation_ratio(ck, cds_i, cds_start)
-    t_fp = np.where(filling, peak_fill_time(safe_tf, ratio, expopen), 0.0)
+    t_fp = np.where(filling, peak_fill_time(safe_tf, ratio, expopen, decay), 0.0)
 
     x = np.clip(tau, 0.0, None) / safe_tf
     growth = cds_start + (cds_i - cds_start) * x**expopen
@@ -130,13 +186,14 @@ def stage_drag_area(tau, cds_start, cds_i, t_f, expopen, ck, t_k, decay="linear"
     frac = np.where(has_decay, after / np.where(has_decay, t_k, 1.0), 1.0)
     frac = np.clip(frac, 0.0, 1.0)
     peak = ck * cds_i
-    if decay == "linear":
-        decayed = peak - (peak - cds_i) * frac
-    else:
+    if code == DECAY_EXPONENTIAL:
         decayed = peak * np.asarray(ck, float) ** (-frac)
+    else:  # linear and cml_linear ramp alike; cml_linear's starts at t_fp = t_f, a jump up from CDS_i
+        decayed = peak - (peak - cds_i) * frac
 
     out = np.where(tau < t_fp, growth, decayed)
-    return np.where(filling, out, cds_i)
+    nothing_to_fill = np.maximum(cds_i, cds_start) if hold else cds_i
+    return np.where(filling, out, nothing_to_fill)
 
 
 @dataclass(frozen=True)
@@ -156,7 +213,7 @@ def _stage_parameters(k, start, cds_stage, n_fill, expopen, ck, t_k):
 
 
 def parachute_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen,
-                        ck, t_k, v_start, decay="linear", fill_constant="n_p"):
+                        ck, t_k, v_start, decay="linear", fill_constant="n_p", below_previous="drop"):
     """Drag-area history of one parachute through all its stages.
 
     Parameters
@@ -170,6 +227,9 @@ def parachute_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen,
         stage start. Stages must be in time order.
     cds_o, diameter : arrays (...,)
         Full-open drag area and nominal diameter D_o.
+    decay, below_previous : str
+        Decay shape (:data:`DECAY_SHAPES`) and the rule for a stage whose drag
+        area is not above the held one (:data:`BELOW_PREVIOUS_RULES`).
 
     Returns
     -------
@@ -180,6 +240,7 @@ def parachute_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen,
     """
     if fill_constant not in ("n", "n_p"):
         raise ValueError("fill_constant must be 'n' or 'n_p'")
+    decay_code(decay), below_previous_code(below_previous)  # refuse a bad option before any work
     start, cds_stage, n_fill, expopen, ck, t_k, v_start = np.broadcast_arrays(
         *(np.asarray(a, float) for a in (start, cds_stage, n_fill, expopen, ck, t_k, v_start)))
     batch = start.shape[:-1]
@@ -195,24 +256,25 @@ def parachute_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen,
         t0, cds_i, fc, expo, c_k, tk = _stage_parameters(k, start, cds_stage, n_fill, expopen, ck, t_k)
         ratio = overinflation_ratio(c_k, cds_i, held)
         if fill_constant == "n_p":
-            n_p, n = fc, n_from_n_p(fc, ratio, expo)
+            n_p, n = fc, n_from_n_p(fc, ratio, expo, decay)
         else:
-            n, n_p = fc, n_p_from_n(fc, ratio, expo)
+            n, n_p = fc, n_p_from_n(fc, ratio, expo, decay)
         t_f = fill_time(n, diameter[..., 0], held, cds_i, cds_o[..., 0], v_start[..., k])
-        t_fp = np.where(t_f > 0, peak_fill_time(t_f, ratio, expo), 0.0)
+        t_fp = np.where(t_f > 0, peak_fill_time(t_f, ratio, expo, decay), 0.0)
         for name, value in zip(fields, (held, t_f, t_fp, n, n_p)):
             fields[name][..., k] = value
 
         stage_args = (held[..., None], cds_i[..., None], t_f[..., None], expo[..., None],
                       c_k[..., None], tk[..., None])
         tau = t - t0[..., None]
-        values = stage_drag_area(tau, *stage_args, decay=decay)
+        values = stage_drag_area(tau, *stage_args, decay=decay, below_previous=below_previous)
         active = tau >= 0
         if k + 1 < n_stages:
             t_next = start[..., k + 1]
             active = active & (t < t_next[..., None])
             # Retain-at-disreef: the next stage begins from what is held now.
-            held = stage_drag_area((t_next - t0)[..., None], *stage_args, decay=decay)[..., 0]
+            held = stage_drag_area((t_next - t0)[..., None], *stage_args, decay=decay,
+                                   below_previous=below_previous)[..., 0]
         out = np.where(active, values, out)
     return out, StageTiming(**fields)
 
@@ -229,14 +291,25 @@ import numba  # noqa: E402
 
 
 @numba.njit(cache=True)
-def compiled_stage_drag_area(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, linear):
+def compiled_peak_exponent(expopen, decay):
+    """Compiled scalar :func:`peak_exponent` for a decay code of :data:`DECAY_CODES`."""
+    if decay == DECAY_CML_LINEAR:
+        return 0.0
+    return 1.0 / expopen
+
+
+@numba.njit(cache=True)
+def compiled_stage_drag_area(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, decay, below_previous):
     """Compiled scalar :func:`stage_drag_area`: drag area ``tau`` s after the stage started.
 
     Takes the stage's timing already derived (``held`` = CDS_start, ``t_f``,
-    ``t_fp``) so a caller evaluating many instants derives it once; ``linear``
-    selects the linear decay, else the exponential one.
+    ``t_fp``) so a caller evaluating many instants derives it once; ``decay``
+    and ``below_previous`` are codes of :data:`DECAY_CODES` and
+    :data:`BELOW_PREVIOUS_CODES`.
     """
     if t_f <= 0.0:
+        if below_previous == BELOW_PREVIOUS_HOLD and held > cds_i:
+            return held
         return cds_i
     if tau < t_fp:
         x = tau / t_f if tau > 0.0 else 0.0
@@ -247,14 +320,15 @@ def compiled_stage_drag_area(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, line
     if frac >= 1.0:
         return cds_i
     peak = ck * cds_i
-    if linear:
-        return peak - (peak - cds_i) * frac
-    return peak * ck ** (-frac)
+    if decay == DECAY_EXPONENTIAL:
+        return peak * ck ** (-frac)
+    return peak - (peak - cds_i) * frac   # linear; cml_linear from its jump at t_fp = t_f
 
 
 @numba.njit(cache=True)
 def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
-                      n_stages, linear, fill_is_np, t_sorted, out, t_f_out, t_fp_out, n_out, held_out):
+                        n_stages, decay, below_previous, fill_is_np, t_sorted, out, t_f_out, t_fp_out, n_out,
+                        held_out):
     """One parachute's stages (arrays (K,)): drag area at ``t`` (N,) into ``out`` (N,), timing into (K,).
 
     Writes only the bins inside a stage, so ``out`` must hold zeros before the first
@@ -271,7 +345,7 @@ def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, c
             ratio = (ck[k] * cds_i - held) / growth
         else:
             ratio = 1.0
-        r_pow = ratio ** (1.0 / expopen[k])
+        r_pow = ratio ** compiled_peak_exponent(expopen[k], decay)   # t_fp/t_f = n_p/n
         if fill_is_np:
             n = n_fill[k] / r_pow
         else:
@@ -290,34 +364,36 @@ def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, c
         if t_sorted:
             i = np.searchsorted(t, t0)
             while i < N and t[i] < t1:
-                out[i] = compiled_stage_drag_area(t[i] - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
+                out[i] = compiled_stage_drag_area(t[i] - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k],
+                                                  decay, below_previous)
                 i += 1
         else:
             for i in range(N):
                 ti = t[i]
                 if ti >= t0 and ti < t1:
                     out[i] = compiled_stage_drag_area(ti - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k],
-                                                      linear)
+                                                      decay, below_previous)
         if k + 1 < n_stages:
-            held = compiled_stage_drag_area(t1 - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k], linear)
+            held = compiled_stage_drag_area(t1 - t0, held, cds_i, t_f, t_fp, expopen[k], ck[k], t_k[k],
+                                            decay, below_previous)
 
 
 @numba.njit(cache=True)
 def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
-                      n_stages, linear, fill_is_np, out, t_f_out, t_fp_out, n_out, held_out):
+                      n_stages, decay, below_previous, fill_is_np, out, t_f_out, t_fp_out, n_out, held_out):
     B, P = start.shape[:2]
     per_walker_time = t.shape[0] > 1
     for b in range(B):
         tb = b if per_walker_time else 0
         for p in range(P):
             parachute_stage_law(t[tb], start[b, p], cds_stage[b, p], cds_o[b, p], diameter[p], n_fill[b, p],
-                              expopen[b, p], ck[b, p], t_k[b, p], v_start[b, p], n_stages[p], linear,
-                              fill_is_np, False, out[b, p], t_f_out[b, p], t_fp_out[b, p], n_out[b, p],
-                              held_out[b, p])
+                                expopen[b, p], ck[b, p], t_k[b, p], v_start[b, p], n_stages[p], decay,
+                                below_previous, fill_is_np, False, out[b, p], t_f_out[b, p], t_fp_out[b, p],
+                                n_out[b, p], held_out[b, p])
 
 
 def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
-                      n_stages=None, decay="linear", fill_constant="n_p"):
+                      n_stages=None, decay="linear", fill_constant="n_p", below_previous="drop"):
     """Compiled :func:`parachute_drag_area` for a cluster: stage arrays (B, P, K), ``cds_o`` (B, P).
 
     ``t`` is (N,) shared by all rows, or (B, N) one time base per row (for a
@@ -325,8 +401,7 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     (extra stage slots are ignored). Returns ``cds`` (B, P, N) and a
     :class:`StageTiming` with fields (B, P, K).
     """
-    if decay not in DECAY_SHAPES:
-        raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+    codes = decay_code(decay), below_previous_code(below_previous)
     start = np.ascontiguousarray(start, dtype=float)
     B, P, K = start.shape
     stage = [np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), (B, P, K)))
@@ -337,7 +412,7 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     n_stages = np.full(P, K, dtype=np.int64) if n_stages is None else np.asarray(n_stages, dtype=np.int64)
     out = np.zeros((B, P, t2.shape[1]))
     fields = [np.zeros((B, P, K)) for _ in range(4)]
-    _drag_area_kernel(t2, start, stage[0], cds_o, diameter, *stage[1:], n_stages, decay == "linear",
+    _drag_area_kernel(t2, start, stage[0], cds_o, diameter, *stage[1:], n_stages, *codes,
                       fill_constant == "n_p", out, *fields)
     t_f, t_fp, n, held = fields
     if fill_constant == "n_p":

@@ -46,7 +46,7 @@ import numpy as np
 from cpas_bayes.physics.atmosphere import standard_density
 from cpas_bayes.physics.effects import (added_mass, added_mass_acceleration, added_mass_momentum_rate, added_mass_rate,
                       breathing_factor, riser_tension, sensed_load_factor)
-from cpas_bayes.physics.inflation import DECAY_SHAPES, StageTiming, parachute_drag_area
+from cpas_bayes.physics.inflation import StageTiming, below_previous_code, decay_code, parachute_drag_area
 from cpas_bayes.core.units import STANDARD_GRAVITY
 
 # Half-width of the central differences that give dCDS/dt and dρ/dh for the
@@ -121,7 +121,8 @@ class SimulationOptions:
 
     dt: float = 0.01                 # output sample interval, s
     substeps: int = 1                # RK4 steps per sample
-    decay: str = "linear"            # post-peak decay shape of the stage law
+    decay: str = "linear"            # post-peak decay shape of the stage law (inflation.DECAY_SHAPES)
+    below_previous: str = "drop"     # a stage not above the held drag area: "drop" to its own, "hold" it (CML)
     prf: float = 1.0                 # pressure recovery fraction on the canopies
     added_mass_k: object = None      # k_a, scalar or (B,) or (B, P); None = off
     added_mass_exponent: float = 1.5  # p of m_a ∝ CDS^p (effects Eq. A1'); 1.5 = Eq. A1
@@ -208,6 +209,7 @@ class _Cluster:
         self.weight = np.broadcast_to(np.asarray(cluster.weight, float), per_chute).copy()
         self.fill_constant = cluster.fill_constant
         self.decay = options.decay
+        self.below_previous = options.below_previous
         self.breathing = None
         if options.breathing is not None:
             b = options.breathing
@@ -220,7 +222,7 @@ class _Cluster:
         cds, timing = parachute_drag_area(
             times, self.start, self.stage["cds_stage"], self.cds_o, self.diameter, self.stage["n_fill"],
             self.stage["expopen"], self.stage["ck"], self.stage["tk"], stage_airspeed,
-            decay=self.decay, fill_constant=self.fill_constant)
+            decay=self.decay, fill_constant=self.fill_constant, below_previous=self.below_previous)
         if self.breathing is not None:
             peak = (self.start + timing.t_fp)[..., None]                  # (B, P, K, 1)
             ringing = breathing_factor(np.asarray(times)[..., None, :] - peak, *self.breathing) - 1.0  # (B, P, K, n)
@@ -370,8 +372,7 @@ def simulate(state0: VehicleState0, vehicle: VehicleProperties, cluster: Cluster
     (cubic Hermite) between samples. Results in ``peak_tension``,
     ``peak_total_tension``.
     """
-    if options.decay not in DECAY_SHAPES:
-        raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {options.decay!r}")
+    decay_code(options.decay), below_previous_code(options.below_previous)  # refuse a bad option before any work
     if options.dt <= 0 or options.substeps < 1 or duration <= 0:
         raise ValueError("need dt > 0, substeps ≥ 1 and duration > 0")
     batch = _batch_shape(state0, vehicle, cluster)

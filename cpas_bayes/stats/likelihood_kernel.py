@@ -35,14 +35,15 @@ def interp(x, xp, fp):
 
 
 @numba.njit(cache=True)
-def baseline_quadratic_form(theta, consts, gather, cds_o_index, diameter, n_stages, linear, native_time,
-                            native_airspeed, t, acc_obs, lc_obs, lc_weight_term, lc_index, scalars,
+def baseline_quadratic_form(theta, consts, gather, cds_o_index, diameter, n_stages, decay, below_previous,
+                            native_time, native_airspeed, t, acc_obs, lc_obs, lc_weight_term, lc_index, scalars,
                             stated_vehicle_cds, stated_total_weight, chute_weight_sum,
                             w_acc, a_acc, w_lc, a_lc, inv_denom, out):
     """Σ over bins of r̃ᵀ(D + uuᵀ)⁻¹r̃ per walker (B,) into ``out``: TestModel.predict and _quadratic_form fused.
 
     ``gather`` (6, P, K) indexes θ for start, n_p, expopen, ck, tk, eps (≥ D: ``consts``);
-    ``scalars`` the columns of vehicle_weight, vehicle_cds, noise_acc, load_scale, noise_lc.
+    ``scalars`` the columns of vehicle_weight, vehicle_cds, noise_acc, load_scale, noise_lc;
+    ``decay`` and ``below_previous`` the stage law's codes (inflation.DECAY_CODES, BELOW_PREVIOUS_CODES).
     Scratch is one walker's (P, N) drag areas and (N,) sums, so memory stays small for any batch.
     """
     B, D = theta.shape
@@ -65,8 +66,8 @@ def baseline_quadratic_form(theta, consts, gather, cds_o_index, diameter, n_stag
                 stage[6, k] = interp(stage[0, k], native_time, native_airspeed)
             cds[p, :] = 0.0
             parachute_stage_law(t, stage[0], stage[5], cds_o, diameter[p], stage[1], stage[2], stage[3],
-                              stage[4], stage[6], n_stages[p], linear, True, True, cds[p],
-                              timing[0], timing[1], timing[2], timing[3])
+                                stage[4], stage[6], n_stages[p], decay, below_previous, True, True, cds[p],
+                                timing[0], timing[1], timing[2], timing[3])
         weight_ratio = stated_total_weight / (theta[b, scalars[0]] + chute_weight_sum)
         cds_v = theta[b, scalars[1]]
         # Reciprocals: divisions in the bin loop would bound its speed.

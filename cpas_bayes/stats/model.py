@@ -4,8 +4,9 @@ A :class:`TestModel` is a set of named parameters with priors and a pipeline
 that turns a batch of parameter vectors θ (B, D) into predicted observations:
 
 1. inflation: each parachute's drag area CDS_i(t) by the stage law
-   (:func:`cpas_bayes.physics.inflation.parachute_drag_area`), V_i = measured airspeed
-   at each sampled stage start;
+   (:func:`cpas_bayes.physics.inflation.parachute_drag_area`, with the model's
+   ``decay`` and ``below_previous``), V_i = measured airspeed at each sampled
+   stage start;
 2. extensions may reshape CDS_i (e.g. canopy breathing), add an apparent
    drag area seen by both channels (added mass), change the load-cell
    friction factor in time, or shift the load-cell time base;
@@ -63,7 +64,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cpas_bayes.data.bundle import FlightTest
-from cpas_bayes.physics.inflation import DECAY_SHAPES, cluster_drag_area, stage_role, stage_tag
+from cpas_bayes.physics.inflation import below_previous_code, cluster_drag_area, decay_code, stage_role, stage_tag
 from cpas_bayes.stats.cluster_form import chute_prefixes, start_prior
 from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
 from cpas_bayes.stats.observations import Observations
@@ -169,14 +170,15 @@ class TestModel:
     __test__ = False  # a flight *test* model, not a pytest class
 
     def __init__(self, test: FlightTest, obs: Observations, kind_priors: dict, nuisance: NuisancePriors,
-                 decay="linear", extensions=(), cluster="individual"):
-        if decay not in DECAY_SHAPES:
-            raise ValueError(f"decay must be one of {DECAY_SHAPES}, got {decay!r}")
+                 decay="linear", extensions=(), cluster="individual", below_previous="drop"):
+        # The stage law's options, and their codes for the fused kernel (refuses unknown ones).
+        self._law_codes = decay_code(decay), below_previous_code(below_previous)
         self.chute_prefix = chute_prefixes(test.parachutes, cluster)   # refuses an unknown form
         self.cluster = cluster
         self.test = test
         self.obs = obs
         self.decay = decay
+        self.below_previous = below_previous
         self.extensions = tuple(extensions)
         self.kind_priors = kind_priors
         self.nuisance_priors = nuisance
@@ -345,7 +347,8 @@ class TestModel:
         return cluster_drag_area(
             t, stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter,
             stage["n_p"], stage["expopen"], stage["ck"], stage["tk"], v_start,
-            n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p")
+            n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p",
+            below_previous=self.below_previous)
 
     def predict(self, theta):
         theta = np.atleast_2d(theta)
@@ -516,7 +519,7 @@ class TestModel:
         quad = np.empty(theta.shape[0])
         baseline_quadratic_form(
             theta, self._constants, self._gather_array, self._cds_o_index, self.diameter,
-            self.stages_per_chute, self.decay == "linear", obs.native_time, obs.native_airspeed,
+            self.stages_per_chute, *self._law_codes, obs.native_time, obs.native_airspeed,
             obs.time, obs.acc, obs.lc, obs.lc_weight_term, obs.lc_index, self._scalar_index,
             float(obs.stated_vehicle_cds), float(self.stated_total_weight), float(self.chute_weight.sum()),
             self._w_acc, self._a_acc, self._w_lc, self._a_lc, self._inv_denom, quad)
