@@ -465,7 +465,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     check_output(out)
     paths = find_bundles(folder)
     tests = validate_all(paths)
-    load_test_priors([p.kind for t in tests for p in t.parachutes], config.priors)  # a bad prior file: before any step
+    for t in tests:   # a bad or missing prior file: before any step
+        load_test_priors([p.kind for p in t.parachutes], config.priors, t.priors_files)
     configs = {}
     for path, test in zip(paths, tests):
         test_folder(out, test.name)  # every path from a name checked before anything runs
@@ -481,7 +482,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     fit_keys, diag_keys = {}, {}
     jobs = []
     for path, test in zip(paths, tests):
-        bundle_key = _digest(folder_digest(path), __version__)
+        # the test's own prior files may sit beside the bundles, outside its folder
+        bundle_key = _digest(folder_digest(path), *[f.read_bytes() for f in test.priors_files], __version__)
         fit_opts = {k: options[k] for k in ("seed", "decay", "fit_ensembles", "fit_max_steps", "fit_tau_factor",
                                             "fit_check_every")}
         if config.below_previous != CampaignConfig.below_previous:   # keyed only when set: default keys unchanged

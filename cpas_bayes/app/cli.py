@@ -85,11 +85,12 @@ def cli():
     """Parachute flight-test reduction, Bayesian inflation reconstruction and Monte Carlo loads."""
 
 
-def _check_priors(kinds, priors):
-    """Load every prior a test needs (the override file checked whole) before any work starts."""
+def _check_priors(kinds, priors, files=()):
+    """Load every prior a test needs (its own prior files and the override, each checked whole) before any
+    work starts."""
     from cpas_bayes.stats.priors import load_test_priors
 
-    load_test_priors(kinds, priors)
+    load_test_priors(kinds, priors, files)
 
 
 @cli.command()
@@ -108,10 +109,13 @@ def validate(bundles, as_json, priors):
             _check_priors(KINDS, priors)
         except InputError as exc:
             failures += 1
+            priors = None   # refused once; the bundles are checked with their own prior files
             click.secho(f"refused: {exc}", fg="red", err=True)
     for path in bundles:
         try:
-            summaries.append(summary(read_bundle(path)))
+            test = read_bundle(path)
+            _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
+            summaries.append(summary(test))
         except InputError as exc:
             failures += 1
             click.secho(f"refused: {exc}", fg="red", err=True)
@@ -256,7 +260,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
     test = read_bundle(bundle)
-    _check_priors([p.kind for p in test.parachutes], priors)
+    _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}, "
                f"stage below previous: {below_previous}")
@@ -448,7 +452,7 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
         raise click.BadParameter(f"{sorted({n for n in names if names.count(n) > 1})[0]} is given twice",
                                  param_hint="--candidates")
     test = read_bundle(bundle)
-    _check_priors([p.kind for p in test.parachutes], priors)
+    _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
                               sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
     _on_interrupt(f"nothing was written to {out} (a diagnosis writes its files at the end); rerun the command")

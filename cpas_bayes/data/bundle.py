@@ -35,7 +35,7 @@ from cpas_bayes.data import limits
 from cpas_bayes.data.bundle_csv import numeric_column, read_csv, sigma_column
 from cpas_bayes.data.limits import MAX_COLUMN_NAME, check_column, check_record, check_value
 
-KINDS = ("drogue", "main", "pilot", "fbcp")
+KINDS = ("drogue", "main", "pilot", "fbcp")   # kinds whose priors the package ships; any other needs a priors file
 INFLATIONS = ("infinite", "finite")
 TOML_NAME = "test.toml"
 CSV_NAME = "data.csv"
@@ -67,6 +67,7 @@ class Parachute:
     stages: tuple[Stage, ...]
     load_cell: str | None = None      # column name in the bundle's data.csv
     flyout_angle: str | None = None   # column name in the bundle's data.csv
+    diameter_sigma: float = 0.0       # 1-sigma of the nominal diameter, m; > 0 makes D_o a fitted parameter
 
     @property
     def load_column(self):
@@ -104,6 +105,7 @@ class FlightTest:
     parachutes: tuple[Parachute, ...]
     data: pd.DataFrame = field(repr=False)
     source: Path | None = None
+    priors_files: tuple[Path, ...] = ()   # test.toml's own prior files (key ``priors``), resolved
 
     @property
     def time(self):
@@ -150,10 +152,10 @@ class FlightTest:
 # reading
 
 # Every key test.toml may hold (docs/test-bundle.md); any other is refused with the nearest of these.
-TOP_KEYS = ("name", "units", "phase", "vehicle", "parachute", "sigma")
+TOP_KEYS = ("name", "units", "phase", "priors", "vehicle", "parachute", "sigma")
 VEHICLE_KEYS = ("weight", "weight_sigma", "cds", "cds_sigma")
-PARACHUTE_KEYS = ("id", "kind", "inflation", "diameter", "weight", "weight_sigma", "load_cell", "flyout_angle",
-                  "stage")
+PARACHUTE_KEYS = ("id", "kind", "inflation", "diameter", "diameter_sigma", "weight", "weight_sigma", "load_cell",
+                  "flyout_angle", "stage")
 STAGE_KEYS = ("label", "start", "start_sigma")
 # data.csv columns with a fixed meaning: no parachute's load_cell or flyout_angle may name one of them.
 _RESERVED = ("time", "G", "qbar", "airspeed", "gamma", "density", "altitude")
@@ -269,9 +271,14 @@ def _parse_parachutes(doc, reader, units):
         if pid in seen:
             reader.fail(f"parachute[{i}].id", f"duplicate parachute id {pid!r}", "give every parachute a unique id")
         seen.add(pid)
-        kind = reader.string(entry, "kind", where, choices=KINDS)
+        kind = check_kind(reader.string(entry, "kind", where), reader.path, f"key '{where}kind'", BundleError)
         inflation = reader.string(entry, "inflation", where, choices=INFLATIONS)
         diameter = reader.number(entry, "diameter", where, positive=True, plausible=limits.PARACHUTE["diameter"])
+        diameter_sigma = reader.number(entry, "diameter_sigma", where, minimum=0, optional=True) or 0.0
+        if diameter_sigma > 0.25 * diameter:
+            reader.fail(f"{where}diameter_sigma", f"diameter_sigma = {diameter_sigma} is more than a quarter of "
+                        f"the diameter ({diameter})", "give the 1-sigma of the nominal diameter, in the bundle's "
+                        "length unit")
         weight_range = limits.PARACHUTE["weight"]
         weight = reader.number(entry, "weight", where, minimum=0, plausible=weight_range)
         weight_sigma = reader.number(entry, "weight_sigma", where, minimum=0, optional=True,
@@ -302,10 +309,54 @@ def _parse_parachutes(doc, reader, units):
             stages.append(Stage(label, start, start_sigma))
         parsed.append(Parachute(
             id=pid, kind=kind, inflation=inflation,
-            diameter=units.si(diameter, "length"),
+            diameter=units.si(diameter, "length"), diameter_sigma=units.si(diameter_sigma, "length"),
             weight=units.si(weight, "force"), weight_sigma=units.si(weight_sigma, "force"),
             stages=tuple(stages), load_cell=load_cell, flyout_angle=flyout))
     return tuple(parsed)
+
+
+PRIORS_SUFFIX = ".toml"
+
+
+def check_kind(kind, file, where, error):
+    """A parachute kind: the package's (priors shipped) or the user's own (a safe name whose priors come from
+    a file), but never a package kind in other letter case (a typo, not a new kind)."""
+    check_name(kind, file, where, "parachute kind", error)
+    near = next((k for k in KINDS if k == kind.lower() and k != kind), None)
+    if near:
+        raise error(file, where, f"unknown kind {shown(kind)}", f"did you mean '{near}'? (kinds are lower case)")
+    return kind
+
+
+def _priors_files(doc, reader, folder):
+    """test.toml's ``priors``: one relative path or a list, each an existing ``.toml`` file in the bundle's
+    folder or its parent (a campaign folder's shared priors), resolved; () when absent."""
+    value = doc.get("priors", [])
+    items = [value] if isinstance(value, str) else value
+    if not isinstance(items, list) or not all(isinstance(v, str) and v.strip() for v in items):
+        reader.fail("priors", f"must be a file name or a list of them, got {shown(value)}",
+                    'write priors = "rescue.toml" (a file next to test.toml)')
+    out = []
+    bundle = folder.resolve()
+    for i, item in enumerate(items):
+        where = "priors" if isinstance(value, str) else f"priors[{i}]"
+        if len(item) > 255 or not item.isprintable():
+            reader.fail(where, f"{shown(item)} is not a usable file name", "give a short relative path")
+        path = Path(item)
+        if path.is_absolute():
+            reader.fail(where, f"{shown(item)} is an absolute path", "give a path relative to the bundle folder, "
+                        "e.g. \"rescue.toml\" or \"../priors/rescue.toml\"")
+        if path.suffix != PRIORS_SUFFIX:
+            reader.fail(where, f"{shown(item)} is not a .toml file", "name a TOML prior file (see priors/README.md)")
+        resolved = (bundle / path).resolve()
+        if not (resolved.is_relative_to(bundle) or resolved.is_relative_to(bundle.parent)):
+            reader.fail(where, f"{shown(item)} leads outside the bundle's folder and its parent",
+                        "keep prior files next to test.toml or in the folder that holds the bundles")
+        if not resolved.is_file():
+            reader.fail(where, f"prior file {resolved} not found", "create it (template: priors/template.toml) "
+                        "or correct the path, which is relative to the bundle folder")
+        out.append(resolved)
+    return tuple(out)
 
 
 def _test_name(doc, reader, folder):
@@ -368,6 +419,7 @@ def read_bundle(folder) -> FlightTest:
     reader.units = units
     name = _test_name(doc, reader, folder)
     phase = reader.text(doc, "phase", "", default="unspecified")
+    priors_files = _priors_files(doc, reader, folder)
 
     veh = reader.table(doc, "vehicle", "")
     reader.keys(veh, VEHICLE_KEYS, "vehicle")
@@ -453,7 +505,7 @@ def read_bundle(folder) -> FlightTest:
             for c in (p.load_column, f"{p.load_column}_sigma"):
                 data[c] = units.si(data[c].to_numpy(), "force")
     return FlightTest(name=name, phase=phase, units=units, vehicle=vehicle, parachutes=parachutes,
-                      data=data, source=folder)
+                      data=data, source=folder, priors_files=priors_files)
 
 
 # ---------------------------------------------------------------------------
@@ -468,10 +520,14 @@ def _toml_document(test: FlightTest):
                        "cds": u.from_si(test.vehicle.cds, "area"),
                        "cds_sigma": u.from_si(test.vehicle.cds_sigma, "area")},
            "parachute": []}
+    if test.priors_files:   # copied beside test.toml by write_bundle
+        doc["priors"] = [f.name for f in test.priors_files]
     for p in test.parachutes:
         entry = {"id": p.id, "kind": p.kind, "inflation": p.inflation,
                  "diameter": u.from_si(p.diameter, "length"),
                  "weight": u.from_si(p.weight, "force"), "weight_sigma": u.from_si(p.weight_sigma, "force")}
+        if p.diameter_sigma > 0:
+            entry["diameter_sigma"] = u.from_si(p.diameter_sigma, "length")
         if p.load_cell:
             entry["load_cell"] = p.load_cell
         if p.flyout_angle:
@@ -505,9 +561,14 @@ def write_bundle(test: FlightTest, folder, extra_files=None):
     """Write ``test`` as a bundle folder in its own units, atomically.
 
     ``extra_files`` maps file names to text written beside test.toml (for
-    example a synthetic test's ``truth.json``).
+    example a synthetic test's ``truth.json``); the test's own prior files are
+    copied beside it too.
     """
     folder = Path(folder)
+    names = [f.name for f in test.priors_files]
+    if len(set(names)) < len(names):
+        raise ValueError(f"prior files of test {test.name!r} share a file name: {names}")
+    extra_files = {**{f.name: Path(f).read_text(encoding="utf-8") for f in test.priors_files}, **(extra_files or {})}
     with atomic_directory(folder) as tmp:
         (tmp / TOML_NAME).write_bytes(tomli_w.dumps(_toml_document(test)).encode("utf-8"))
         bundle_frame(test).to_csv(tmp / CSV_NAME, index=False, float_format="%.15g")

@@ -357,7 +357,7 @@ def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), n
     from cpas_bayes.stats.observations import build_observations
     from cpas_bayes.stats.priors import load_test_priors
 
-    kind_priors, nuisance = load_test_priors([p.kind for p in test.parachutes], priors)
+    kind_priors, nuisance = load_test_priors([p.kind for p in test.parachutes], priors, test.priors_files)
     obs = build_observations(test, reduction.frame, native_rate=native_rate)
     return TestModel(test, obs, kind_priors, nuisance, decay=decay, extensions=extensions, cluster=cluster,
                      below_previous=below_previous)

@@ -44,7 +44,10 @@ one compiled loop per walker
 pipeline above stays the reference (``predict``, pointwise values, extensions).
 
 Parameter names: ``<chute>.cds_o``, ``<chute>.s<k>.<name>`` for stage k (1-based)
-and name in start, n_p, expopen, ck, tk, eps; ``vehicle_weight``,
+and name in start, n_p, expopen, ck, tk, eps (ck, tk on infinite-mass stages, and on
+finite-mass ones when the kind's priors say ``finite_mass_ck = true``); ``<chute>.d_o``
+when the bundle states a ``diameter_sigma`` (D_o enters the stage law only as
+n_p·D_o, Eq. 14, so the kernels see n_p·D_o/D_nominal at the nominal D_o); ``vehicle_weight``,
 ``vehicle_cds``, ``load_scale``, ``noise_acc``, ``noise_lc``; extensions add
 their own.
 
@@ -160,6 +163,11 @@ class Extension:
         return None
 
 
+def diameter_prior(nominal, sigma):
+    """Prior of a fitted nominal diameter: normal about the stated value, cut at ±4 sigma (and above 0)."""
+    return TruncNormal(nominal, sigma, max(nominal - 4 * sigma, 0.05 * nominal), nominal + 4 * sigma)
+
+
 class TestModel:
     """Parameters, priors and batched likelihood of one flight test.
 
@@ -236,6 +244,8 @@ class TestModel:
             s_o = math.pi / 4 * p.diameter**2
             cd = kp.parachute["cd_o"]
             params.append(Parameter(f"{prefix}.cds_o", cd.scaled(s_o), "m²"))
+            if p.diameter_sigma > 0:   # a guessed diameter: D_o fitted within its stated 1-sigma
+                params.append(Parameter(f"{prefix}.d_o", diameter_prior(p.diameter, p.diameter_sigma), "m"))
             n = len(p.stages)
             for k in range(n):
                 role = stage_role(k, n)
@@ -243,7 +253,7 @@ class TestModel:
                 params.append(Parameter(f"{pre}.start", start_prior([q.stages[k] for q in group]), "s"))
                 params.append(Parameter(f"{pre}.n_p", kp.for_stage(role, "n_p")))
                 params.append(Parameter(f"{pre}.expopen", kp.for_stage(role, "expopen")))
-                if p.inflation == "infinite":
+                if p.inflation == "infinite" or kp.finite_mass_ck:   # finite mass: only where the prior allows
                     params.append(Parameter(f"{pre}.ck", kp.for_stage(role, "ck")))
                     params.append(Parameter(f"{pre}.tk", kp.for_stage(role, "tk"), "s"))
                 if k < n - 1:
@@ -302,10 +312,38 @@ class TestModel:
         pairs = list(dict.fromkeys((int(gather["start"][i, k]), int(gather["start"][i, k + 1]))
                                    for i, n in enumerate(self.stages_per_chute) for k in range(n - 1)))
         self._start_order = tuple(np.ascontiguousarray(a) for a in np.array(pairs, dtype=np.int64).reshape(-1, 2).T)
+        # A fitted diameter enters the stage law only through n_p·D_o (Eq. 14), so the kernels keep the
+        # nominal D_o and see n_p scaled by D_o/D_nominal: per n_p column, its d_o column and D_nominal.
+        scaled = []
+        for prefix, p in dict(zip(self.chute_prefix, self.parachutes)).items():
+            if f"{prefix}.d_o" in self.index:
+                scaled += [(self.index[f"{prefix}.{stage_tag(k)}.n_p"], self.index[f"{prefix}.d_o"], p.diameter)
+                           for k in range(len(p.stages))]
+        self._np_scaling = tuple(np.array(c) for c in zip(*scaled)) if scaled else None
+
+    def effective_theta(self, theta):
+        """θ as the stage law reads it: with a fitted diameter, n_p columns times D_o/D_nominal (the law
+        holds the nominal D_o); θ itself otherwise."""
+        if self._np_scaling is None:
+            return theta
+        cols, d_cols, nominal = self._np_scaling
+        theta = np.array(theta, dtype=float, copy=True)
+        theta[:, cols] *= theta[:, d_cols] / nominal
+        return theta
+
+    def diameter_ratio(self, theta):
+        """D_o/D_nominal per row and parachute (B, P): 1 where the diameter is not fitted."""
+        ratio = np.ones((theta.shape[0], self.n_chutes))
+        for i, prefix in enumerate(self.chute_prefix):
+            j = self.index.get(f"{prefix}.d_o")
+            if j is not None:
+                ratio[:, i] = theta[:, j] / self.diameter[i]
+        return ratio
 
     def gather_stages(self, theta):
         """Stage arrays (B, P, K) from θ (B, D): start, n_p, expopen, ck, tk, eps, cds_stage."""
         B = theta.shape[0]
+        theta = self.effective_theta(theta)
         ext = np.concatenate([theta, np.broadcast_to(self._constants, (B, 2))], axis=1)
         out = {}
         for name, idx in self._gather.items():
@@ -518,7 +556,7 @@ class TestModel:
         obs = self.obs          # read per call: checks and tests swap in edited observations
         quad = np.empty(theta.shape[0])
         baseline_quadratic_form(
-            theta, self._constants, self._gather_array, self._cds_o_index, self.diameter,
+            np.ascontiguousarray(self.effective_theta(theta)), self._constants, self._gather_array, self._cds_o_index, self.diameter,
             self.stages_per_chute, *self._law_codes, obs.native_time, obs.native_airspeed,
             obs.time, obs.acc, obs.lc, obs.lc_weight_term, obs.lc_index, self._scalar_index,
             float(obs.stated_vehicle_cds), float(self.stated_total_weight), float(self.chute_weight.sum()),
@@ -552,6 +590,7 @@ class TestModel:
         theta = np.atleast_2d(theta)
         stage = self.gather_stages(theta)
         _, timing = self.drag_areas(stage, self.obs.time[:1])
+        ratio = self.diameter_ratio(theta)
         out = {}
         for i, p in enumerate(self.parachutes):
             if p.id != self.chute_prefix[i]:
@@ -562,7 +601,7 @@ class TestModel:
                     tied = self.parameter_name(i, f"{stage_tag(k)}.{name}")
                     if tied is not None and tied != f"{pre}.{name}":
                         out[f"{pre}.{name}"] = theta[:, self.index[tied]]
-                out[f"{pre}.n"] = timing.n[:, i, k]
+                out[f"{pre}.n"] = timing.n[:, i, k] / ratio[:, i]   # the law saw n_p·D_o/D_nominal
                 out[f"{pre}.eps"] = stage["eps"][:, i, k]
                 out[f"{pre}.cds"] = stage["cds_stage"][:, i, k]
                 out[f"{pre}.t_f"] = timing.t_f[:, i, k]

@@ -48,8 +48,8 @@ import numba
 import numpy as np
 
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.inputs import check_keys, inside, nearest, read_toml, shown
-from cpas_bayes.data.bundle import KINDS
+from cpas_bayes.core.inputs import check_keys, did_you_mean, inside, nearest, read_toml, shown
+from cpas_bayes.data.bundle import KINDS, check_kind
 from cpas_bayes.stats.distributions import TABLE_FORMS, LogNormal, Normal, TruncNormal, Uniform
 
 PRIORS_DIR = Path(__file__).parent.parent / "data" / "priors"
@@ -59,7 +59,7 @@ PARACHUTE_PARAMETERS = ("cd_o",)
 NUISANCE_PARAMETERS = ("load_scale", "noise_acc", "noise_lc")   # what the model reads from [nuisance]
 PRIOR_FAMILIES = ("uniform", "normal", "truncnormal", "lognormal")   # those PriorSet evaluates in one pass
 # The tables of a prior file and the parameters each may hold (None: a string, not a table).
-FILE_TABLES = {"kind": None, "description": None, "parachute": PARACHUTE_PARAMETERS,
+FILE_TABLES = {"kind": None, "description": None, "finite_mass_ck": bool, "parachute": PARACHUTE_PARAMETERS,
                **{role: STAGE_PARAMETERS for role in ROLES}, "nuisance": NUISANCE_PARAMETERS}
 MIN_MASS = 1e-6   # share of a truncated prior's parent distribution its bounds must hold
 
@@ -129,6 +129,11 @@ def _load_toml(path):
         if name not in doc:
             continue
         value = doc[name]
+        if parameters is bool:
+            if not isinstance(value, bool):
+                raise InputError(path, f"key '{name}'", f"must be true or false, got {shown(value)}",
+                                 f"write {name} = true")
+            continue
         if parameters is None:
             if not isinstance(value, str):
                 raise InputError(path, f"key '{name}'", f"must be a string, got {shown(value)}",
@@ -142,11 +147,8 @@ def _load_toml(path):
         for parameter, table in value.items():
             prior_from_table(table, path, f"{name}.{parameter}")
     kind = doc.get("kind")
-    if kind is not None and kind not in KINDS:
-        near = nearest(kind, KINDS)
-        raise InputError(path, "key 'kind'", f"unknown kind {shown(kind)}",
-                         (f"did you mean '{near}'? " if near else "") + f"use one of {', '.join(KINDS)} "
-                         "(or leave kind out to apply the file to every kind)")
+    if kind is not None:   # a kind of the package's, or one the user defines in this file
+        check_kind(kind, path, "key 'kind'", InputError)
     return doc
 
 
@@ -158,6 +160,7 @@ class KindPriors:
     stage: dict        # role -> {parameter -> Prior}
     parachute: dict    # parameter -> Prior
     source: tuple      # files read, in order
+    finite_mass_ck: bool = False   # finite-mass stages also over-inflate (C_k, t_k sampled)
 
     def for_stage(self, role, parameter):
         return self.stage[role][parameter]
@@ -185,47 +188,80 @@ def _merge_kind(doc, file, base=None):
     return stage, chute
 
 
+def _override_files(override):
+    """``--priors`` as a tuple of files: None, one path, or several."""
+    if override is None:
+        return ()
+    return (override,) if isinstance(override, (str, Path)) else tuple(override)
+
+
 def load_kind_priors(kind, override=None):
-    """Priors for parachute ``kind`` from ``priors/<kind>.toml``, with a user's override file merged."""
-    path = inside(PRIORS_DIR, f"{kind}.toml")  # a kind is a name, never a way out of the priors folder
-    doc = _load_toml(path)
-    stage, chute = _merge_kind(doc, path)
-    sources = [str(path)]
-    base = KindPriors(kind, stage, chute, tuple(sources))
-    if override is not None:
-        odoc = _load_toml(override)
+    """Priors for parachute ``kind``: the package's ``priors/<kind>.toml`` if it ships one, then each file of
+    ``override`` (one path or several, later ones win) whose ``kind`` is this one or absent.
+
+    A kind the package does not ship needs a file with ``kind = "<kind>"`` holding every prior (see
+    ``priors/template.toml``).
+    """
+    files = _override_files(override)
+    stage, chute, sources, finite_ck = {r: {} for r in ROLES}, {}, [], False
+    base = None
+    if kind in KINDS:
+        path = inside(PRIORS_DIR, f"{kind}.toml")  # a kind is a name, never a way out of the priors folder
+        doc = _load_toml(path)
+        stage, chute = _merge_kind(doc, path)
+        sources.append(str(path))
+        finite_ck = bool(doc.get("finite_mass_ck", False))
+        base = KindPriors(kind, stage, chute, tuple(sources), finite_ck)
+    for file in files:
+        odoc = _load_toml(file)
         okind = odoc.get("kind")
         if okind is not None and okind != kind:
-            return base  # the override file speaks of another kind
-        stage, chute = _merge_kind(odoc, override, base)
-        sources.append(str(override))
+            continue  # the file speaks of another kind
+        if base is None and okind is None and not any(odoc.get(r) for r in ROLES):
+            continue  # a nuisance-only or partial file cannot define a kind of its own
+        stage, chute = _merge_kind(odoc, file, base)
+        sources.append(str(file))
+        finite_ck = bool(odoc.get("finite_mass_ck", finite_ck))
+        base = KindPriors(kind, stage, chute, tuple(sources), finite_ck)
+    if base is None:
+        raise InputError(files[-1] if files else "priors", f"kind '{kind}'",
+                         f"no priors for parachute kind {shown(kind)}{did_you_mean(kind, KINDS)}: the package "
+                         f"ships priors for {', '.join(KINDS)} only",
+                         f'give a prior file with kind = "{kind}" (copy priors/template.toml) through --priors FILE '
+                         'or priors = "FILE" in the bundle\'s test.toml')
     missing = [(r, p) for r in ROLES for p in ("n_p", "expopen") if p not in stage[r]]
     missing += [(r, "eps") for r in ("first", "reefed") if "eps" not in stage[r]]
     if "cd_o" not in chute:
         missing.append(("parachute", "cd_o"))
+    if finite_ck:
+        missing += [(r, p) for r in ROLES for p in ("ck", "tk") if p not in stage[r]]
     if missing:
         r, p = missing[0]
-        raise InputError(sources[-1], f"key '{r}.{p}'", "no prior for this parameter", f"add [{r}] {p} = {{...}}")
-    return KindPriors(kind, stage, chute, tuple(sources))
+        raise InputError(sources[-1], f"key '{r}.{p}'", f"no prior for this parameter of kind {shown(kind)}",
+                         f"add [{r}] {p} = {{...}}")
+    return base
 
 
-def load_test_priors(kinds, override=None):
-    """Every prior a test of parachute ``kinds`` needs, the override file checked whole: what ``fit``,
-    ``diagnose`` and ``validate --priors`` load before any work. Returns ({kind: KindPriors}, NuisancePriors)."""
-    return {kind: load_kind_priors(kind, override) for kind in dict.fromkeys(kinds)}, load_nuisance_priors(override)
+def load_test_priors(kinds, override=None, files=()):
+    """Every prior a test of parachute ``kinds`` needs: what ``fit``, ``diagnose`` and ``validate`` load before
+    any work. ``files`` are the test's own prior files (test.toml ``priors``), ``override`` the command's
+    ``--priors`` (it wins). Returns ({kind: KindPriors}, NuisancePriors)."""
+    sources = tuple(files) + _override_files(override)
+    return ({kind: load_kind_priors(kind, sources) for kind in dict.fromkeys(kinds)},
+            load_nuisance_priors(sources))
 
 
 def load_nuisance_priors(override=None):
-    """Per-test nuisance priors from ``priors/nuisance.toml`` (and an override's [nuisance] table)."""
+    """Per-test nuisance priors from ``priors/nuisance.toml`` (and each override file's [nuisance] table)."""
     path = PRIORS_DIR / "nuisance.toml"
     doc = _load_toml(path).get("nuisance", {})
     priors = {k: prior_from_table(v, path, f"nuisance.{k}") for k, v in doc.items()}
     sources = [str(path)]
-    if override is not None:
-        odoc = _load_toml(override).get("nuisance", {})
-        priors.update({k: prior_from_table(v, override, f"nuisance.{k}") for k, v in odoc.items()})
+    for file in _override_files(override):
+        odoc = _load_toml(file).get("nuisance", {})
+        priors.update({k: prior_from_table(v, file, f"nuisance.{k}") for k, v in odoc.items()})
         if odoc:
-            sources.append(str(override))
+            sources.append(str(file))
     return NuisancePriors(priors, tuple(sources))
 
 
