@@ -350,15 +350,24 @@ def _check_stages_in_record(parachutes, t, reader, csv_path):
                             "give stage starts in the time base of data.csv, in seconds")
 
 
-def read_bundle(folder) -> FlightTest:
-    """Read and validate one bundle folder; raise :class:`BundleError` on any fault."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise BundleError(folder, "", "not a folder" if folder.exists() else "folder not found",
-                          "pass the path of a bundle folder holding test.toml and data.csv")
-    toml_path, csv_path = folder / TOML_NAME, folder / CSV_NAME
-    doc = _read_toml(toml_path)
-    reader = _TomlReader(toml_path)
+@dataclass(frozen=True)
+class BundleMetadata:
+    """What test.toml says (SI, as in :class:`FlightTest`), and its constant sigmas in the bundle's units."""
+
+    name: str
+    phase: str
+    units: UnitSystem
+    vehicle: Vehicle
+    parachutes: tuple[Parachute, ...]
+    sigma: dict
+
+
+def parse_test_document(doc, path, folder) -> BundleMetadata:
+    """Check a test.toml document and convert it to SI; raise :class:`BundleError` naming ``path`` and the key.
+
+    ``folder``'s name is the test's name when the document has none.
+    """
+    reader = _TomlReader(path)
     reader.keys(doc, TOP_KEYS, "")
 
     units_name = reader.string(doc, "units", "")
@@ -366,7 +375,7 @@ def read_bundle(folder) -> FlightTest:
         reader.fail("units", f"unknown units {shown(units_name)}", "use units = \"US\" or units = \"SI\"")
     units = unit_system(units_name)
     reader.units = units
-    name = _test_name(doc, reader, folder)
+    name = _test_name(doc, reader, Path(folder))
     phase = reader.text(doc, "phase", "", default="unspecified")
 
     veh = reader.table(doc, "vehicle", "")
@@ -382,6 +391,20 @@ def read_bundle(folder) -> FlightTest:
     )
     parachutes = _parse_parachutes(doc, reader, units)
     sigma_table = _sigma_table(doc, reader, parachutes, units)
+    return BundleMetadata(name, phase, units, vehicle, parachutes, sigma_table)
+
+
+def read_bundle(folder) -> FlightTest:
+    """Read and validate one bundle folder; raise :class:`BundleError` on any fault."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise BundleError(folder, "", "not a folder" if folder.exists() else "folder not found",
+                          "pass the path of a bundle folder holding test.toml and data.csv")
+    toml_path, csv_path = folder / TOML_NAME, folder / CSV_NAME
+    meta = parse_test_document(_read_toml(toml_path), toml_path, folder)
+    name, phase, units, vehicle, parachutes, sigma_table = (meta.name, meta.phase, meta.units, meta.vehicle,
+                                                            meta.parachutes, meta.sigma)
+    reader = _TomlReader(toml_path, units)
 
     raw = read_csv(csv_path)
     columns = {}
@@ -501,11 +524,14 @@ def bundle_frame(test: FlightTest) -> pd.DataFrame:
     return out.rename(columns=rename)
 
 
-def write_bundle(test: FlightTest, folder, extra_files=None):
+def write_bundle(test: FlightTest, folder, extra_files=None, check=None):
     """Write ``test`` as a bundle folder in its own units, atomically.
 
     ``extra_files`` maps file names to text written beside test.toml (for
-    example a synthetic test's ``truth.json``).
+    example a synthetic test's ``truth.json``). ``check``, if given, is called
+    with the finished temporary folder before it is put in place (e.g.
+    :func:`read_bundle`); whatever it raises passes through and nothing is
+    installed.
     """
     folder = Path(folder)
     with atomic_directory(folder) as tmp:
@@ -513,6 +539,8 @@ def write_bundle(test: FlightTest, folder, extra_files=None):
         bundle_frame(test).to_csv(tmp / CSV_NAME, index=False, float_format="%.15g")
         for name, text in (extra_files or {}).items():
             (tmp / name).write_text(text, encoding="utf-8")
+        if check is not None:
+            check(tmp)
     return folder
 
 
