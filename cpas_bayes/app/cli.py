@@ -491,6 +491,31 @@ def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode
                + (", ".join(f"{t} {' + '.join(c)}" for t, c in result.causes.items() if c) or "none"))
 
 
+@cli.command("import")
+@click.argument("map_path", metavar="MAP.toml", type=click.Path(path_type=Path))
+@out_option("Bundle folder to write (test.toml, data.csv, import.json).", required=True)
+def import_command(map_path, out):
+    """Turn drop-test logger CSV files into a flight-test bundle (docs/import.md).
+
+    MAP.toml says which file, column and unit feeds each channel, each
+    logger's clock offset ("auto": cross-correlation with the reference
+    logger) and the test's metadata. Release and line stretch are found in the
+    sensed acceleration; time 0 of the bundle is the release. The bundle is
+    read back and checked before it is put in place.
+    """
+    from cpas_bayes.data.import_map import read_import_map
+    from cpas_bayes.data.importer import describe, import_loggers, write_import
+
+    import_map = read_import_map(map_path, out)  # the whole map, and that every file exists, before any reading
+    result = import_loggers(import_map, out)
+    for line in describe(result):
+        click.echo(f"  {line}")
+    folder = write_import(result, out)
+    test = result.test
+    click.echo(f"wrote {folder}: {test.name}, {len(test.data):,} rows, {test.time[0]:.3f} … {test.time[-1]:.3f} s "
+               f"after release at {test.sample_rate:.1f} Hz, channels {', '.join(test.channels)}")
+
+
 # -- commands added by later capabilities go above this line --
 
 
