@@ -33,11 +33,11 @@ first time the median-filtered signal stays below 0.5 g for 0.2 s after having
 been above 0.75 g for 0.5 s.
 
 **Line stretch / first load**: A = the free-fall level (median of the 0.5 s
-before), B = the first peak (largest 3-sample mean in the 0.25 s after the rise
-is seen). Found as the first time, at least 0.1 s after release, that the
-median-filtered signal exceeds the median of its previous 0.5 s by
-``threshold`` (default 0.5 g). Its t50 is half-way up the first rise, a few
-hundredths of a second after the first pull for a typical snatch.
+before, after release), B = the first peak (largest 3-sample mean in the
+0.25 s after the rise is seen). Found as the first time, 0.1 s to 600 s after
+release, that the median-filtered signal exceeds the median of its previous
+0.5 s by ``threshold`` (default 0.5 g). Its t50 is half-way up the first rise,
+a few hundredths of a second after the first pull for a typical snatch.
 
 Clock offsets
 -------------
@@ -86,12 +86,13 @@ HANG_TIME = 0.5           # s above HANG_LEVEL before a release (the vehicle hun
 FREE_FALL_HOLD = 0.2      # s below RELEASE_LEVEL: free fall, not a dip of vibration
 LINE_STRETCH_THRESHOLD = 0.5  # g above the free-fall level that marks the first load
 LINE_STRETCH_DELAY = 0.1  # s after release before a first load is looked for (the release transition)
+LINE_STRETCH_SEARCH = 600.0  # s after release within which the first load is looked for
 BASELINE_TIME = 0.5       # s of free fall whose median is the level before the first load
 PEAK_WINDOW = 0.25        # s after the rise is seen in which its first peak is taken
 MEDIAN_TIME = 0.03        # s: width of the median filter that rejects single-sample spikes
 MIN_CORRELATION = 0.5     # below: the two loggers' signals do not match at any lag
 MIN_GRID_STEP = 0.02      # s: finest coarse-correlation grid
-MAX_GRID_POINTS = 4_000_000
+MAX_GRID_POINTS = 1_000_000   # coarse grid: beyond, the step grows (memory of the FFTs)
 
 
 class EventNotFound(ValueError):
@@ -213,30 +214,46 @@ def detect_release(t, g):
 
 
 def detect_line_stretch(t, g, release, threshold=LINE_STRETCH_THRESHOLD):
-    """Line stretch / first load: the first sharp rise of ``g`` by more than ``threshold`` g after ``release`` (s)."""
+    """Line stretch / first load: the first sharp rise of ``g`` by more than ``threshold`` g after ``release`` (s).
+
+    Looked for from ``LINE_STRETCH_DELAY`` to ``LINE_STRETCH_SEARCH`` seconds
+    after release; the hanging level before the release does not enter the
+    free-fall baseline (it is replaced by the level just after release).
+    """
     t, g = np.asarray(t, float), np.asarray(g, float)
     dt = sample_interval(t)
+    lo = int(np.searchsorted(t, release - BASELINE_TIME - 0.1))
+    hi = int(np.searchsorted(t, release + LINE_STRETCH_SEARCH, side="right"))
+    t, g = t[lo:hi], g[lo:hi]
+    fell = t >= release + 0.05
+    early = fell & (t <= release + LINE_STRETCH_DELAY)
+    if not fell.any():
+        raise EventNotFound(f"no line stretch: the record ends at the release ({release:.3f} s)")
+    free_fall = float(np.median(g[early])) if early.any() else float(g[fell][0])
     smooth = _median_smooth(g, dt)
+    smooth[~fell] = free_fall  # the hanging level is not a baseline for the first load
     n_base, gap = _samples(BASELINE_TIME, dt), _samples(0.05, dt)
     # the median of the previous BASELINE_TIME seconds (up to `gap` before), at every sample
     centred = median_filter(smooth, size=n_base | 1, mode="nearest")
     shift = gap + n_base // 2
     baseline = np.full_like(smooth, np.inf)
     baseline[shift:] = centred[:-shift]
-    first = int(np.searchsorted(t, release + LINE_STRETCH_DELAY))
-    first = max(first, shift + 1)
+    first = max(int(np.searchsorted(t, release + LINE_STRETCH_DELAY)), shift + 1)
     rising = np.flatnonzero(smooth[first:] - baseline[first:] > threshold)
-    if not rising.size:
+    if not rising.size or first + int(rising[0]) >= len(g) - 2:
         raise EventNotFound(f"no line stretch: the sensed acceleration never rises more than {threshold:g} g above "
-                            f"its free-fall level after the release at {release:.3f} s")
+                            f"its free-fall level in the {LINE_STRETCH_SEARCH:g} s after the release at "
+                            f"{release:.3f} s")
     d = first + int(rising[0])
-    a = float(np.median(_window(t, g, t[d] - BASELINE_TIME, t[d] - 2 * dt)))
-    noise = noise_sigma(_window(t, g, t[d] - BASELINE_TIME, t[d] - 2 * dt))
+    before = _window(t, g, max(t[d] - BASELINE_TIME, release + 0.05), t[d] - 2 * dt)
+    if before.size < 2:
+        before = g[fell][:max(2, d - int(np.argmax(fell)))]
+    a = float(np.median(before))
+    noise = noise_sigma(before)
     mean3 = np.convolve(g, np.ones(3) / 3, mode="same")
     end = min(len(g) - 2, d + _samples(PEAK_WINDOW, dt))
     peak = d + int(np.argmax(mean3[d:end + 1]))
-    b = float(mean3[peak])
-    return _event("line stretch", t, g, a, b, peak, noise)
+    return _event("line stretch", t, g, a, float(mean3[peak]), peak, noise)
 
 
 # ---------------------------------------------------------------------------
