@@ -35,6 +35,7 @@ _API = {
     "reduce_test": "cpas_bayes.data.reduction",
     "Reduction": "cpas_bayes.data.reduction",
     "synthesize": "cpas_bayes.data.synth",
+    "import_bundle": "cpas_bayes.data.importer",
     # inference
     "SamplerOptions": "cpas_bayes.inference.fit",
     "prepare_model": "cpas_bayes.inference.fit",

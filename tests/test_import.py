@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import tomli_w
 
+import cpas_bayes as cb
 from cpas_bayes.app.cli import main
 from cpas_bayes.core.units import STANDARD_GRAVITY as G0
 from cpas_bayes.data import logger_events as le
@@ -142,10 +143,12 @@ def test_import_recovers_events_and_a_1h15m02s_offset(tmp_path, sim, capsys):
 
 
 def test_offset_without_a_hint_is_found_by_the_full_search(tmp_path, sim):
+    """Elapsed clocks and no hint: every lag with enough overlap is searched (the library call, cb.import_bundle)."""
     truth = write_loggers(tmp_path, sim, seed=1)
     doc = map_document()
     del doc["logger"]["gnss"]["offset_hint"]
-    result = import_loggers(read_import_map(write_map(tmp_path, doc), tmp_path / "b"), tmp_path / "b")
+    result = cb.import_bundle(write_map(tmp_path, doc), tmp_path / "b")
+    assert read_bundle(result.test.source).name == "DT-sim"
     off = result.offsets["gnss"]
     assert abs(off.offset - truth["offset"]) <= K * off.sigma
     assert off.alignment.search == (-np.inf, np.inf)

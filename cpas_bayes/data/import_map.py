@@ -178,7 +178,7 @@ def _unit(m, unit, quantity, where):
     try:
         return column_factor(unit, quantity)
     except ValueError as exc:
-        m.fail(where, f"unknown unit {shown(unit)} for a {quantity} ({exc})",
+        m.fail(where, f"unknown unit {shown(unit)} for {quantity}: {exc}",
                f"write a unit of {quantity} such as {_UNIT_EXAMPLES[quantity]}")
 
 

@@ -61,7 +61,7 @@ or the specific force derived from GNSS velocity or vertical speed):
    smoothed signal, (Δt_m/√12)·min(1, Δt_m/w): each of its sharp features lies
    anywhere within one of its sample intervals Δt_m, an error the box-car of
    width w dilutes by Δt_m/w (measured on simulated drops: z-scores of the
-   offset with a standard deviation of 0.9–1.1 for 20–200 Hz accelerometers
+   offset with a standard deviation of 0.8–0.95 for 20–200 Hz accelerometers
    against 10 Hz GNSS velocity).
 
 σ_τ is statistical: a systematic lag between the two signals (a GNSS receiver's
@@ -337,7 +337,7 @@ def _coarse(ref, other, lo, hi, min_overlap):
     offsets = ta[0] - tb[0] + lags * h
     usable = (n * h >= min_overlap) & (offsets >= lo - h) & (offsets <= hi + h)
     if not usable.any():
-        raise EventNotFound(f"no offset in {lo:g} … {hi:g} s gives the two records {min_overlap:g} s in common")
+        raise EventNotFound(f"no offset in {lo:g} … {hi:g} s gives the two records {min_overlap:.1f} s in common")
     r = np.where(usable, r, -np.inf)
     best = int(np.argmax(r))
     far = usable & (np.abs(offsets - offsets[best]) > 2.0)
