@@ -308,7 +308,7 @@ def resolved_test_document(import_map, events):
     return doc
 
 
-def test_metadata(import_map, events, folder):
+def bundle_metadata(import_map, events, folder):
     """The bundle's metadata with event-linked stage starts resolved; refusals name the map's (or template's) key."""
     doc = resolved_test_document(import_map, events)
     try:
@@ -386,7 +386,7 @@ def read_import_map(path, folder) -> ImportMap:
     test_doc, test_path, prefix = _test_document(m, doc)
     _check_stage_starts(_Map(test_path), test_doc, prefix)
     preliminary = ImportMap(path, (), "", "", 0.0, None, None, 0.0, None, 0.0, 0.0, test_doc, test_path, prefix)
-    meta = test_metadata(preliminary, None, folder)
+    meta = bundle_metadata(preliminary, None, folder)
 
     quantities = dict(CHANNELS)
     for p in meta.parachutes:

@@ -42,7 +42,7 @@ from cpas_bayes.core.files import jsonable
 from cpas_bayes.core.inputs import did_you_mean, shown
 from cpas_bayes.core.units import STANDARD_GRAVITY
 from cpas_bayes.data.bundle import FlightTest, read_bundle, write_bundle
-from cpas_bayes.data.import_map import ISO, read_import_map, test_metadata
+from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
 from cpas_bayes.data.logger_events import (Event, EventNotFound, align_clocks, detect_line_stretch, detect_release,
                                            from_acceleration, from_velocity, from_vertical_speed, sample_interval)
@@ -349,7 +349,9 @@ def _assemble(import_map, records, offsets, meta, t_rows, idx, release):
         ch = spec.channels[channel]
         return f"{spec.name}: {', '.join(ch.columns)} ({ch.unit}{', sign -1' if ch.sign < 0 else ''}){how}"
 
-    has = lambda name: import_map.feeder(name) is not None  # noqa: E731 - a one-line predicate
+    def has(channel):
+        return import_map.feeder(channel) is not None
+
     g_rec = records[import_map.g_logger]
     columns = {"time": t_rows - release, "G": load_factor(g_rec.channels["accel"])[idx]}
     accel = g_rec.spec.channels["accel"]
@@ -378,8 +380,9 @@ def _assemble(import_map, records, offsets, meta, t_rows, idx, release):
         try:
             columns["density"] = standard_density(columns["altitude"], geopotential=False)
         except ValueError as exc:
-            raise InputError(import_map.feeder("altitude").path, "altitude column", str(exc),
-                             "check the altitude column's unit") from None
+            spec = import_map.feeder("altitude")
+            raise InputError(spec.path, f"column '{spec.channels['altitude'].columns[0]}'", str(exc),
+                             "check the altitude column and its unit in the map") from None
         sources["density"] = "1976 standard atmosphere at the altitude"
     if has("qbar"):
         columns["qbar"], sources["qbar"] = at_rows("qbar"), source("qbar")
@@ -407,8 +410,9 @@ def describe(result) -> list:
         clock = {"reference": "reference clock", "given": f"offset {off.offset:+.4f} s (given)"}.get(off.method)
         if clock is None:
             al = off.alignment
+            other = "none" if math.isnan(al.runner_up) else f"{al.runner_up:.2f}"
             clock = (f"offset {off.offset:+.4f} ± {off.sigma:.4f} s (auto: correlation {al.correlation:.2f}, "
-                     f"next best {al.runner_up:.2f})")
+                     f"next best {other})")
         lines.append(f"{name}: {rec.spec.path.name}, {len(rec.time):,} rows at {rec.rate:.1f} Hz, {clock}")
     rel, line = result.release, result.line_stretch
     lines.append(f"release at {rel.time:.4f} ± {rel.sigma:.4f} s on {result.import_map.reference}'s clock"
@@ -428,7 +432,7 @@ def import_loggers(import_map, folder) -> ImportResult:
     offsets = clock_offsets(import_map, records)
     g_rec = records[import_map.g_logger]
     release, line = _events(import_map, g_rec, g_rec.time + offsets[import_map.g_logger].offset)
-    meta = test_metadata(import_map, {"release": (0.0, 0.0), "line_stretch": (line.time, line.sigma)}, folder)
+    meta = bundle_metadata(import_map, {"release": (0.0, 0.0), "line_stretch": (line.time, line.sigma)}, folder)
     idx, t_rows = _rows(import_map, records, offsets, release.time)
     data, sources = _assemble(import_map, records, offsets, meta, t_rows, idx, release.time)
     test = FlightTest(name=meta.name, phase=meta.phase, units=meta.units, vehicle=meta.vehicle,
