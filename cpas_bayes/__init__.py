@@ -30,11 +30,12 @@ _API = {
     # data
     "FlightTest": "cpas_bayes.data.bundle",
     "read_bundle": "cpas_bayes.data.bundle",
-    "write_bundle": "cpas_bayes.data.bundle",
+    "write_bundle": "cpas_bayes.data.bundle_write",
     "example_bundles": "cpas_bayes.data.bundle",
     "reduce_test": "cpas_bayes.data.reduction",
     "Reduction": "cpas_bayes.data.reduction",
     "synthesize": "cpas_bayes.data.synth",
+    "import_bundle": "cpas_bayes.data.importer",
     # inference
     "SamplerOptions": "cpas_bayes.inference.fit",
     "prepare_model": "cpas_bayes.inference.fit",

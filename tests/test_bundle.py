@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cpas_bayes.data import bundle as bundle_module
-from cpas_bayes.data.bundle import read_bundle, write_bundle
+from cpas_bayes.data import bundle_write as bundle_module
+from cpas_bayes.data.bundle import read_bundle
+from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.units import UNIT_SYSTEMS
 

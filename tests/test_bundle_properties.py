@@ -22,7 +22,8 @@ from cpas_bayes.data import limits
 from cpas_bayes.core.ownership import MARKER
 from cpas_bayes.data.bundle import CSV_NAME as CSV
 from cpas_bayes.data.bundle import (INFLATIONS, KINDS, PARACHUTE_KEYS, STAGE_KEYS, TOP_KEYS, VEHICLE_KEYS,
-                                    read_bundle, write_bundle)
+                                    read_bundle)
+from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data.bundle import TOML_NAME as TOML
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.inputs import name_problem
@@ -270,7 +271,11 @@ def unknown_units(draw, plan, files):
 
 
 def unknown_kind(draw, plan, files):
-    return unknown_choice(draw, plan, files, "kind", KINDS)
+    """A package kind in other letter case: a typo, refused (any other safe name is a kind of the user's)."""
+    i, kind = chute(draw, plan), draw(st.sampled_from(KINDS))
+    value = draw(st.sampled_from([kind.upper(), kind.capitalize()]))
+    files.set_key("parachute", i, "kind", value=value)
+    return TOML, f"key 'parachute '{plan.parachute(i)['id']}'.kind'", f"unknown kind {value!r}"
 
 
 def unknown_inflation(draw, plan, files):

@@ -124,7 +124,7 @@ def test_matplotlib_only_in_outputs_and_app():
 
 def test_only_the_cli_selects_a_backend():
     selecting = [str(p.relative_to(PACKAGE.parent)) for name, p in MODULES.items()
-                 if "matplotlib.use(" in p.read_text() and name != "cpas_bayes.app.cli"]
+                 if "matplotlib.use(" in p.read_text() and name != "cpas_bayes.app.cli_runtime"]
     assert not selecting, f"modules that switch the user's matplotlib backend: {selecting}"
 
 

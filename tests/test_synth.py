@@ -8,7 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle, write_bundle
+from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
+from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.app.cli import main
 from cpas_bayes.outputs.figures import save_figure
 from cpas_bayes.data.synth import (EFFECT_MAGNITUDE_RANGE, EFFECTS, draw_effect_params, draw_truth,

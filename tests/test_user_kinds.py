@@ -12,7 +12,8 @@ import pytest
 
 from cpas_bayes.app.cli import main
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.data.bundle import read_bundle, write_bundle
+from cpas_bayes.data.bundle import read_bundle
+from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.inference.fit import prepare_model
 from cpas_bayes.stats.priors import load_test_priors

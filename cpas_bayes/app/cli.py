@@ -16,10 +16,7 @@ exit status 130.
 from __future__ import annotations
 
 import json
-import os
-import signal
 import sys
-import traceback
 from pathlib import Path
 
 import click
@@ -27,23 +24,13 @@ import click
 from cpas_bayes import __version__
 from cpas_bayes.data.bundle import KINDS, read_bundle, summary
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.ownership import output_error
 from cpas_bayes.app.campaign_config import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
+from cpas_bayes.app.cli_runtime import on_interrupt, run_cli
 from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
 from cpas_bayes.app.options import (BATCH, ENSEMBLES, RUNS, SEED, WORKERS, check_scheduler, out_option,
                                     priors_option, seed_option)
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
-
-# What Ctrl-C leaves behind, said by the command that is running (see main()).
-_NOTHING_HALF_WRITTEN = ("interrupted; nothing half-written was left (every output is written to a temporary file "
-                         "and renamed)")
-_INTERRUPTED = [_NOTHING_HALF_WRITTEN]
-
-
-def _on_interrupt(message):
-    _INTERRUPTED[0] = f"interrupted; {message}"
-
 
 def parallel_options(default_workers=2, what="tasks", note=""):
     """``--workers`` and ``--scheduler`` for a command that runs independent tasks."""
@@ -265,7 +252,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}, "
                f"stage below previous: {below_previous}")
     model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous)
-    _on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
+    on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
                   "rerun the same command to resume from it")
     with _executor(min(workers, ensembles), scheduler) as executor:
         fit = fit_model(model, options, out=out, echo=click.echo, executor=executor)
@@ -455,7 +442,7 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
     _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
                               sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
-    _on_interrupt(f"nothing was written to {out} (a diagnosis writes its files at the end); rerun the command")
+    on_interrupt(f"nothing was written to {out} (a diagnosis writes its files at the end); rerun the command")
     with _executor(workers, scheduler) as executor:
         diagnosis = diagnose_test(test, options, echo=click.echo, executor=executor)
     path = write_diagnosis(diagnosis, out)
@@ -499,7 +486,7 @@ def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode
         config = replace(config, workers=workers)
     if diagnose_mode is not None:
         config = replace(config, diagnose=diagnose_mode)
-    _on_interrupt(f"finished steps are kept in {out} and running fits' checkpoints in {out / '.checkpoints'}; "
+    on_interrupt(f"finished steps are kept in {out} and running fits' checkpoints in {out / '.checkpoints'}; "
                   "rerun the same command to resume")
     with _executor(config.workers, scheduler) as executor:
         result = run_campaign(folder, out, config, echo=click.echo, executor=executor)
@@ -509,72 +496,37 @@ def campaign_command(folder, out, config_path, workers, scheduler, diagnose_mode
                + (", ".join(f"{t} {' + '.join(c)}" for t, c in result.causes.items() if c) or "none"))
 
 
+@cli.command("import")
+@click.argument("map_path", metavar="MAP.toml", type=click.Path(path_type=Path))
+@out_option("Bundle folder to write (test.toml, data.csv, import.json).", required=True)
+def import_command(map_path, out):
+    """Turn drop-test logger CSV files into a flight-test bundle (docs/import.md).
+
+    MAP.toml says which file, column and unit feeds each channel, each
+    logger's clock offset ("auto": cross-correlation with the reference
+    logger) and the test's metadata. Release and line stretch are found in the
+    sensed acceleration; time 0 of the bundle is the release. The bundle is
+    read back and checked before it is put in place.
+    """
+    from cpas_bayes.data.import_map import read_import_map
+    from cpas_bayes.data.importer import describe, import_loggers, write_import
+
+    import_map = read_import_map(map_path, out)  # the whole map, and that every file exists, before any reading
+    result = import_loggers(import_map, out)
+    for line in describe(result):
+        click.echo(f"  {line}")
+    folder = write_import(result, out)
+    test = result.test
+    click.echo(f"wrote {folder}: {test.name}, {len(test.data):,} rows, {test.time[0]:.3f} … {test.time[-1]:.3f} s "
+               f"after release at {test.sample_rate:.1f} Hz, channels {', '.join(test.channels)}")
+
+
 # -- commands added by later capabilities go above this line --
 
 
-def _select_backend():
-    """Figures go to files: Agg, in this process and in the worker processes it starts.
-
-    The library itself never selects a backend (a notebook keeps its own); the
-    CLI does, unless the user chose one with MPLBACKEND.
-    """
-    import os
-
-    if "MPLBACKEND" not in os.environ:
-        os.environ["MPLBACKEND"] = "Agg"  # read by the workers' matplotlib
-        import matplotlib
-
-        matplotlib.use("Agg")
-
-
-def _sigterm_as_interrupt(signum, frame):
-    raise KeyboardInterrupt  # SIGTERM (kill, a batch system's stop) ends a command as Ctrl-C does
-
-
 def main(argv=None):
-    """Entry point: run the CLI, turning bad input into one clear message."""
-    _select_backend()
-    _INTERRUPTED[0] = _NOTHING_HALF_WRITTEN
-    try:
-        previous = signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    except ValueError:  # not the main thread: signals stay as they are
-        previous = None
-    try:
-        return _run(argv)
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-
-
-def _run(argv):
-    try:
-        cli.main(args=argv, prog_name="cpas-bayes", standalone_mode=False)
-    except InputError as exc:
-        click.secho(f"error: {exc}", fg="red", err=True)
-        return 2
-    except OSError as exc:  # an output (or input) the system refused: the path and the fix, not a traceback
-        if os.environ.get("CPAS_BAYES_DEBUG") == "1":
-            traceback.print_exc()
-        click.secho(f"error: {output_error(exc, exc.filename or '', verb='used')}", fg="red", err=True)
-        return 2
-    except click.exceptions.Abort:
-        click.echo(_INTERRUPTED[0], err=True)
-        return 130
-    except click.ClickException as exc:
-        exc.show()
-        return exc.exit_code
-    except SystemExit as exc:
-        return exc.code if isinstance(exc.code, int) else 1
-    except KeyboardInterrupt:
-        click.echo(_INTERRUPTED[0], err=True)
-        return 130
-    except Exception as exc:  # noqa: BLE001 - the last line of defence for a CLI user
-        if os.environ.get("CPAS_BAYES_DEBUG") == "1":
-            traceback.print_exc()
-        click.secho(f"internal error: {type(exc).__name__}: {exc}\n"
-                    "rerun with CPAS_BAYES_DEBUG=1 to see the traceback and report it.", fg="red", err=True)
-        return 1
-    return 0
+    """Entry point: run the CLI, turning bad input into one clear message (:func:`run_cli`)."""
+    return run_cli(cli, argv)
 
 
 if __name__ == "__main__":  # pragma: no cover

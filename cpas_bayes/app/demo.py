@@ -39,7 +39,7 @@ DEMO_CONFIG = CampaignConfig(name="demo: six two-Drogue and three three-Main syn
 
 def write_demo_bundles(folder, echo=print):
     """Simulate the demo campaign's bundles into ``folder`` (skipping those already there)."""
-    from cpas_bayes.data.bundle import write_bundle
+    from cpas_bayes.data.bundle_write import write_bundle
     from cpas_bayes.data.synth import synthesize
 
     folder = Path(folder)

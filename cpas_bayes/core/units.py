@@ -11,6 +11,7 @@ once at import; no pint quantity is carried through numerical code.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import pint
@@ -63,3 +64,38 @@ UNIT_SYSTEMS = {"US": UnitSystem("US", _factors(_US)), "SI": UnitSystem("SI", _f
 def unit_system(name):
     """The :class:`UnitSystem` called ``name`` (``"US"`` or ``"SI"``); KeyError otherwise."""
     return UNIT_SYSTEMS[name]
+
+
+# Quantities a logger's column may carry (cpas-bayes import) and the SI unit each is converted to; angles go to
+# degrees, the unit of the bundle's angle columns.
+_COLUMN_SI = {**_SI, "acceleration": "m/s**2", "angle": "degree"}
+# Spellings pint reads otherwise: "g" is the gram to pint, but a load factor to a logger.
+_ALIASES = {("acceleration", "g"): "standard_gravity", ("acceleration", "G"): "standard_gravity",
+            ("pressure", "psf"): "lbf/ft**2"}
+_NAME = r"[A-Za-zµ°_]+(\s*(\^|\*\*)\s*-?\d+)?"
+_UNIT_TEXT = re.compile(rf"{_NAME}(\s*[*/]\s*{_NAME})*")
+
+
+def column_factor(unit, quantity):
+    """The factor that multiplies a value in ``unit`` (pint's spelling, e.g. ``"ft/s^2"``, ``"kn"``) into SI.
+
+    ``quantity`` is one of :data:`_COLUMN_SI`'s keys; acceleration accepts
+    ``"g"`` (standard gravity, 9.80665 m/s²) and angles convert to degrees.
+    ``unit`` is unit names with integer powers joined by ``*`` or ``/``, no
+    numbers (``"1000*m"`` is not a unit). A ValueError says why a unit is
+    refused: not of that form, unknown to pint, or of another dimension than
+    ``quantity`` (``"m"`` for a speed).
+    """
+    if quantity not in _COLUMN_SI:
+        raise ValueError(f"unknown quantity {quantity!r}")
+    text = unit.strip() if isinstance(unit, str) else ""
+    if not _UNIT_TEXT.fullmatch(text):
+        raise ValueError(f"{unit!r} is not a unit (unit names with integer powers joined by '*' or '/', "
+                         "e.g. 'm/s^2')")
+    name = _ALIASES.get((quantity, text), text)
+    try:
+        return float(_ureg.Quantity(1.0, name).to(_COLUMN_SI[quantity]).magnitude)
+    except pint.errors.DimensionalityError:
+        raise ValueError(f"{unit!r} is not a unit of {quantity}") from None
+    except (pint.errors.PintError, AttributeError, TypeError, ValueError, ZeroDivisionError):
+        raise ValueError(f"{unit!r} is not a unit pint knows") from None

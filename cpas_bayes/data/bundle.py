@@ -25,10 +25,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import tomli_w
 
 from cpas_bayes.core.errors import BundleError
-from cpas_bayes.core.files import atomic_directory
 from cpas_bayes.core.inputs import MAX_TEXT, check_keys, check_name, check_text, name_problem, nearest, read_toml, shown
 from cpas_bayes.core.units import UNIT_SYSTEMS, UnitSystem, unit_system
 from cpas_bayes.data import limits
@@ -41,7 +39,7 @@ TOML_NAME = "test.toml"
 CSV_NAME = "data.csv"
 
 # Column -> physical quantity, for unit conversion. Angles stay in degrees.
-_COLUMN_QUANTITY = {"time": "time", "qbar": "pressure", "qbar_sigma": "pressure",
+COLUMN_QUANTITY = {"time": "time", "qbar": "pressure", "qbar_sigma": "pressure",
                     "airspeed": "speed", "density": "density", "altitude": "length"}
 
 
@@ -401,15 +399,25 @@ def _check_stages_in_record(parachutes, t, reader, csv_path):
                             "give stage starts in the time base of data.csv, in seconds")
 
 
-def read_bundle(folder) -> FlightTest:
-    """Read and validate one bundle folder; raise :class:`BundleError` on any fault."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise BundleError(folder, "", "not a folder" if folder.exists() else "folder not found",
-                          "pass the path of a bundle folder holding test.toml and data.csv")
-    toml_path, csv_path = folder / TOML_NAME, folder / CSV_NAME
-    doc = _read_toml(toml_path)
-    reader = _TomlReader(toml_path)
+@dataclass(frozen=True)
+class BundleMetadata:
+    """What test.toml says (SI, as in :class:`FlightTest`), and its constant sigmas in the bundle's units."""
+
+    name: str
+    phase: str
+    units: UnitSystem
+    vehicle: Vehicle
+    parachutes: tuple[Parachute, ...]
+    sigma: dict
+    priors_files: tuple[Path, ...] = ()
+
+
+def parse_test_document(doc, path, folder) -> BundleMetadata:
+    """Check a test.toml document and convert it to SI; raise :class:`BundleError` naming ``path`` and the key.
+
+    ``folder``'s name is the test's name when the document has none.
+    """
+    reader = _TomlReader(path)
     reader.keys(doc, TOP_KEYS, "")
 
     units_name = reader.string(doc, "units", "")
@@ -417,9 +425,9 @@ def read_bundle(folder) -> FlightTest:
         reader.fail("units", f"unknown units {shown(units_name)}", "use units = \"US\" or units = \"SI\"")
     units = unit_system(units_name)
     reader.units = units
-    name = _test_name(doc, reader, folder)
+    name = _test_name(doc, reader, Path(folder))
     phase = reader.text(doc, "phase", "", default="unspecified")
-    priors_files = _priors_files(doc, reader, folder)
+    priors_files = _priors_files(doc, reader, Path(folder))
 
     veh = reader.table(doc, "vehicle", "")
     reader.keys(veh, VEHICLE_KEYS, "vehicle")
@@ -434,6 +442,20 @@ def read_bundle(folder) -> FlightTest:
     )
     parachutes = _parse_parachutes(doc, reader, units)
     sigma_table = _sigma_table(doc, reader, parachutes, units)
+    return BundleMetadata(name, phase, units, vehicle, parachutes, sigma_table, priors_files)
+
+
+def read_bundle(folder) -> FlightTest:
+    """Read and validate one bundle folder; raise :class:`BundleError` on any fault."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise BundleError(folder, "", "not a folder" if folder.exists() else "folder not found",
+                          "pass the path of a bundle folder holding test.toml and data.csv")
+    toml_path, csv_path = folder / TOML_NAME, folder / CSV_NAME
+    meta = parse_test_document(_read_toml(toml_path), toml_path, folder)
+    name, phase, units, vehicle, parachutes, sigma_table = (meta.name, meta.phase, meta.units, meta.vehicle,
+                                                            meta.parachutes, meta.sigma)
+    reader = _TomlReader(toml_path, units)
 
     raw = read_csv(csv_path)
     columns = {}
@@ -497,7 +519,7 @@ def read_bundle(folder) -> FlightTest:
             need_sigma(column, canonical, limits.CHANNELS[kind], required=kind == "F")
 
     data = pd.DataFrame(columns)
-    for col, quantity in _COLUMN_QUANTITY.items():
+    for col, quantity in COLUMN_QUANTITY.items():
         if col in data:
             data[col] = units.si(data[col].to_numpy(), quantity)
     for p in parachutes:
@@ -505,76 +527,7 @@ def read_bundle(folder) -> FlightTest:
             for c in (p.load_column, f"{p.load_column}_sigma"):
                 data[c] = units.si(data[c].to_numpy(), "force")
     return FlightTest(name=name, phase=phase, units=units, vehicle=vehicle, parachutes=parachutes,
-                      data=data, source=folder, priors_files=priors_files)
-
-
-# ---------------------------------------------------------------------------
-# writing
-
-
-def _toml_document(test: FlightTest):
-    u = test.units
-    doc = {"name": test.name, "units": u.name, "phase": test.phase,
-           "vehicle": {"weight": u.from_si(test.vehicle.weight, "force"),
-                       "weight_sigma": u.from_si(test.vehicle.weight_sigma, "force"),
-                       "cds": u.from_si(test.vehicle.cds, "area"),
-                       "cds_sigma": u.from_si(test.vehicle.cds_sigma, "area")},
-           "parachute": []}
-    if test.priors_files:   # copied beside test.toml by write_bundle
-        doc["priors"] = [f.name for f in test.priors_files]
-    for p in test.parachutes:
-        entry = {"id": p.id, "kind": p.kind, "inflation": p.inflation,
-                 "diameter": u.from_si(p.diameter, "length"),
-                 "weight": u.from_si(p.weight, "force"), "weight_sigma": u.from_si(p.weight_sigma, "force")}
-        if p.diameter_sigma > 0:
-            entry["diameter_sigma"] = u.from_si(p.diameter_sigma, "length")
-        if p.load_cell:
-            entry["load_cell"] = p.load_cell
-        if p.flyout_angle:
-            entry["flyout_angle"] = p.flyout_angle
-        entry["stage"] = [{"label": s.label, "start": s.start, "start_sigma": s.start_sigma} for s in p.stages]
-        doc["parachute"].append(entry)
-    return doc
-
-
-def bundle_frame(test: FlightTest) -> pd.DataFrame:
-    """The test's data as they appear in data.csv: the bundle's units and column names."""
-    u = test.units
-    out = test.data.copy()
-    for col, quantity in _COLUMN_QUANTITY.items():
-        if col in out:
-            out[col] = u.from_si(out[col].to_numpy(), quantity)
-    rename = {}
-    for p in test.parachutes:
-        if p.load_cell:
-            for c in (p.load_column, f"{p.load_column}_sigma"):
-                out[c] = u.from_si(out[c].to_numpy(), "force")
-            rename[p.load_column] = p.load_cell
-            rename[f"{p.load_column}_sigma"] = f"{p.load_cell}_sigma"
-        if p.flyout_angle:
-            rename[p.angle_column] = p.flyout_angle
-            rename[f"{p.angle_column}_sigma"] = f"{p.flyout_angle}_sigma"
-    return out.rename(columns=rename)
-
-
-def write_bundle(test: FlightTest, folder, extra_files=None):
-    """Write ``test`` as a bundle folder in its own units, atomically.
-
-    ``extra_files`` maps file names to text written beside test.toml (for
-    example a synthetic test's ``truth.json``); the test's own prior files are
-    copied beside it too.
-    """
-    folder = Path(folder)
-    names = [f.name for f in test.priors_files]
-    if len(set(names)) < len(names):
-        raise ValueError(f"prior files of test {test.name!r} share a file name: {names}")
-    extra_files = {**{f.name: Path(f).read_text(encoding="utf-8") for f in test.priors_files}, **(extra_files or {})}
-    with atomic_directory(folder) as tmp:
-        (tmp / TOML_NAME).write_bytes(tomli_w.dumps(_toml_document(test)).encode("utf-8"))
-        bundle_frame(test).to_csv(tmp / CSV_NAME, index=False, float_format="%.15g")
-        for name, text in (extra_files or {}).items():
-            (tmp / name).write_text(text, encoding="utf-8")
-    return folder
+                      data=data, source=folder, priors_files=meta.priors_files)
 
 
 def with_data(test: FlightTest, data: pd.DataFrame) -> FlightTest:

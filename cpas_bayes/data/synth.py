@@ -71,7 +71,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle, write_bundle
+from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle
+from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data import synth_effects as fx
 from cpas_bayes.physics.effects import friction_scale, lagged
 from cpas_bayes.physics.inflation import n_from_n_p, overinflation_ratio

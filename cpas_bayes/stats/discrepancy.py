@@ -47,7 +47,7 @@ from scipy import sparse
 from scipy.interpolate import BSpline
 
 from cpas_bayes.stats.distributions import TruncNormal
-from cpas_bayes.stats.model import Extension, Parameter
+from cpas_bayes.stats.model_parts import Extension, Parameter
 
 _LOG_2PI = math.log(2.0 * math.pi)
 KNOT_BINS = 6            # bins between knots: 0.12 s in a transient, 0.6 s in steady flight

@@ -50,7 +50,7 @@ import numpy as np
 from cpas_bayes.physics.effects import (added_mass, added_mass_acceleration, added_mass_momentum_rate, added_mass_rate,
                       breathing_factor)
 from cpas_bayes.stats.discrepancy import Discrepancy
-from cpas_bayes.stats.model import Extension, Parameter
+from cpas_bayes.stats.model_parts import Extension, Parameter
 from cpas_bayes.stats.distributions import LogNormal, Normal, TruncNormal, Uniform
 from cpas_bayes.core.units import STANDARD_GRAVITY
 

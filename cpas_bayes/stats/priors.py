@@ -203,6 +203,7 @@ def load_kind_priors(kind, override=None):
     ``priors/template.toml``).
     """
     files = _override_files(override)
+    check_kind(kind, files[-1] if files else PRIORS_DIR, "parachute kind", InputError)   # a name, never a path
     stage, chute, sources, finite_ck = {r: {} for r in ROLES}, {}, [], False
     base = None
     if kind in KINDS:

@@ -1,0 +1,465 @@
+"""Logger CSV files to a flight-test bundle: ``cpas-bayes import MAP.toml --out BUNDLE`` (docs/import.md).
+
+The steps, each refusing bad input with the file, the place and the fix:
+
+1. :func:`~cpas_bayes.data.import_map.read_import_map` checks the column map
+   (and that every logger file exists) before any file is read;
+2. :func:`read_logger` reads each logger's time column (s, ms, us… or ISO
+   timestamps, as seconds) and the columns of its channels, in SI;
+3. :func:`clock_offsets`: every logger's clock is put on the reference
+   logger's, t_ref = t_logger + offset, with the offset given or found by
+   cross-correlation (:func:`~cpas_bayes.data.logger_events.align_clocks`);
+4. release and line stretch are found in the sensed load factor of the G
+   logger (:mod:`cpas_bayes.data.logger_events`), unless the map gives them;
+5. the bundle's rows are the G logger's samples from ``record.start`` to
+   ``record.end`` seconds after release (within the span every logger feeding
+   the bundle covers); **time 0 is the release**. The other loggers' channels
+   are interpolated (linearly) onto those rows;
+6. derived channels: G = |a|/g0 (three axes) or sign·a/g0 (one axis); airspeed
+   = |v| from GNSS velocity when no airspeed column is mapped (ground speed:
+   no wind); γ = atan2(−v_down, √(v_n² + v_e²)), or asin(v_up/V);
+   ρ = 1976 standard atmosphere at the (geometric) altitude when no density
+   column is mapped; q̄ = ½ρV² when no q̄ column is mapped;
+7. stage starts linked to an event become numbers in the bundle's time
+   (start = event + delay, start_sigma = √(σ_event² + start_sigma²)), and the
+   bundle is written to a temporary folder, read back with
+   :func:`~cpas_bayes.data.bundle.read_bundle`, and only then renamed into
+   place, with ``import.json`` (what was detected, from which files).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from cpas_bayes.core.errors import BundleError, InputError
+from cpas_bayes.core.files import jsonable
+from cpas_bayes.core.inputs import did_you_mean, shown
+from cpas_bayes.core.units import STANDARD_GRAVITY
+from cpas_bayes.data.bundle import FlightTest, read_bundle
+from cpas_bayes.data.bundle_write import write_bundle
+from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
+from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
+from cpas_bayes.data.logger_events import (Event, EventNotFound, align_clocks, detect_line_stretch, detect_release,
+                                           from_acceleration, from_velocity, from_vertical_speed, sample_interval)
+from cpas_bayes.physics.atmosphere import standard_density
+
+REPORT_NAME = "import.json"
+MIN_ROWS = 10
+_EPOCH = pd.Timestamp("1970-01-01", tz="UTC")
+
+
+@dataclass(frozen=True)
+class LoggerRecord:
+    """One logger file read: its time (s, its own clock) and its channels in SI (angles in degrees)."""
+
+    spec: object           # its LoggerSpec
+    time: np.ndarray
+    channels: dict         # name -> (n,) or (n, 3) array
+
+    @property
+    def rate(self):
+        return 1.0 / sample_interval(self.time)
+
+
+@dataclass(frozen=True)
+class ClockOffset:
+    """t_ref = t_logger + offset, s, with its 1-sigma and how it was obtained."""
+
+    offset: float
+    sigma: float
+    method: str            # "reference", "given" or "auto"
+    alignment: object = None  # the Alignment of an "auto" offset
+
+
+@dataclass(frozen=True)
+class ImportResult:
+    """What ``cpas-bayes import`` made: the bundle (in memory) and what it detected."""
+
+    test: FlightTest
+    import_map: object     # the ImportMap
+    records: dict          # logger name -> LoggerRecord
+    offsets: dict          # logger name -> ClockOffset
+    release: Event         # time on the reference clock
+    line_stretch: Event    # time after release
+    sources: dict          # bundle channel -> where it came from
+    release_given: bool = False
+    line_stretch_given: bool = False
+
+    def report(self) -> dict:
+        """The content of import.json."""
+        imap, ref = self.import_map, self.import_map.logger(self.import_map.reference)
+        t = self.test.time
+        release = {"time_on_reference_clock_s": self.release.time, "sigma_s": self.release.sigma,
+                   "terms_s": self.release.terms, "given_in_map": self.release_given}
+        if ref.time_unit == ISO:
+            release["utc"] = (_EPOCH + pd.Timedelta(self.release.time, "s")).round("us").isoformat()
+        return jsonable({
+            "map": str(imap.path), "time_zero": "release", "reference_logger": imap.reference,
+            "release": release,
+            "line_stretch": {"time_after_release_s": self.line_stretch.time, "sigma_s": self.line_stretch.sigma,
+                             "terms_s": self.line_stretch.terms, "given_in_map": self.line_stretch_given},
+            "loggers": {name: {"file": str(rec.spec.path), "rows": len(rec.time), "rate_hz": rec.rate,
+                               "clock": rec.spec.clock, "offset_s": self.offsets[name].offset,
+                               "offset_sigma_s": self.offsets[name].sigma, "offset_method": self.offsets[name].method,
+                               **_alignment_fields(self.offsets[name].alignment)}
+                        for name, rec in self.records.items()},
+            "record": {"start_s": float(t[0]), "end_s": float(t[-1]), "rows": len(t),
+                       "rate_hz": self.test.sample_rate},
+            "channels": self.sources,
+        })
+
+
+def _alignment_fields(alignment):
+    if alignment is None:
+        return {}
+    return {"correlation": alignment.correlation, "runner_up_correlation": alignment.runner_up,
+            "searched_s": list(alignment.search), "fit_samples": alignment.samples}
+
+
+# ---------------------------------------------------------------------------
+# reading one logger file
+
+
+def _fail_file(spec, where, problem, fix):
+    raise InputError(spec.path, where, problem, fix)
+
+
+def _header(spec):
+    try:
+        frame = pd.read_csv(spec.path, sep=spec.delimiter, skiprows=spec.skip_rows, nrows=0, dtype=str,
+                            encoding="utf-8-sig", index_col=False)
+    except UnicodeDecodeError:
+        _fail_file(spec, "", "not UTF-8 text", "save the logger file as UTF-8 CSV")
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, ValueError) as exc:
+        _fail_file(spec, f"row {spec.skip_rows + 1} (header)", f"no readable header ({exc})",
+                   "set skip_rows to the number of lines before the header, and delimiter to the file's separator")
+    return [str(c).strip() for c in frame.columns]
+
+
+def _cells(spec, needed):
+    header = _header(spec)
+    for column, key in needed:
+        if column not in header:
+            listed = ", ".join(shown(h, 30, quote=False) for h in header[:12]) + (", …" if len(header) > 12 else "")
+            _fail_file(spec, f"column '{shown(column, 60, quote=False)}'",
+                       f"missing column, named by the map ({key})" + did_you_mean(column, header),
+                       f"correct the column name in the map (the file's columns: {listed}), or set skip_rows / "
+                       "delimiter if the header was misread")
+    wanted = {c for c, _ in needed}
+    try:
+        frame = pd.read_csv(spec.path, sep=spec.delimiter, skiprows=spec.skip_rows, dtype=str, encoding="utf-8-sig",
+                            index_col=False, keep_default_na=False, skip_blank_lines=False,
+                            usecols=lambda c: str(c).strip() in wanted)
+    except UnicodeDecodeError:
+        _fail_file(spec, "", "not UTF-8 text", "save the logger file as UTF-8 CSV")
+    except (pd.errors.ParserError, ValueError) as exc:
+        _fail_file(spec, "", f"not a readable CSV table ({exc})", "make every row have as many cells as the header")
+    frame.columns = [str(c).strip() for c in frame.columns]
+    filled = (frame != "").any(axis=1).to_numpy()
+    last = int(np.flatnonzero(filled)[-1]) + 1 if filled.any() else 0
+    return frame.iloc[:last]  # blank lines at the end are not samples
+
+
+def _row(spec, i):
+    return f"row {spec.skip_rows + 2 + i}"
+
+
+def _numbers(spec, frame, column):
+    raw = frame[column].str.strip()
+    values = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        cell = raw.iloc[i]
+        _fail_file(spec, f"{_row(spec, i)}, column '{column}'",
+                   "the cell is empty" if cell == "" else f"the cell {shown(cell)} is not a finite number",
+                   "every cell of a mapped column must hold a number; remove or repair the row")
+    return values
+
+
+def _times(spec, frame):
+    column = spec.time_column
+    if spec.time_unit != ISO:
+        return _numbers(spec, frame, column) * spec.time_factor
+    stamps = pd.to_datetime(frame[column].str.strip(), utc=True, format="ISO8601", errors="coerce")
+    bad = stamps.isna().to_numpy()
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        _fail_file(spec, f"{_row(spec, i)}, column '{column}'",
+                   f"{shown(frame[column].iloc[i])} is not an ISO 8601 timestamp",
+                   "write times as 2024-05-14T10:15:02.125Z (a zone-less time is taken as UTC), or give the "
+                   "time column's numeric unit")
+    return ((stamps - _EPOCH) / pd.Timedelta(1, "s")).to_numpy(dtype=float)
+
+
+def read_logger(spec) -> LoggerRecord:
+    """One logger file: strictly increasing time in seconds and each mapped channel in SI."""
+    size = spec.path.stat().st_size
+    if size > MAX_CSV_BYTES:
+        _fail_file(spec, "", f"{size:,} bytes, more than the {MAX_CSV_BYTES:,} a logger file may have",
+                   "cut the file to the drop (a few minutes around it)")
+    needed = [(spec.time_column, f"logger.{spec.name}.time.column")]
+    for ch in spec.channels.values():
+        needed += [(c, f"logger.{spec.name}.channels.{ch.name}") for c in ch.columns]
+    frame = _cells(spec, needed)
+    if len(frame) < MIN_ROWS:
+        _fail_file(spec, "", f"{len(frame)} data rows, fewer than {MIN_ROWS}", "give the logger's full record")
+    t = _times(spec, frame)
+    steps = np.diff(t)
+    if (steps <= 0).any():
+        i = int(np.flatnonzero(steps <= 0)[0]) + 1
+        _fail_file(spec, f"{_row(spec, i)}, column '{spec.time_column}'",
+                   f"time not strictly increasing ({t[i - 1]:.6f} s then {t[i]:.6f} s)",
+                   "sort the rows by time and remove repeated samples")
+    channels = {}
+    for ch in spec.channels.values():
+        columns = [_numbers(spec, frame, c) * ch.factor * ch.sign for c in ch.columns]
+        channels[ch.name] = columns[0] if len(columns) == 1 else np.stack(columns, axis=1)
+    return LoggerRecord(spec, t, channels)
+
+
+# ---------------------------------------------------------------------------
+# clocks and events
+
+
+def load_factor(accel):
+    """Sensed load factor, g: |a|/g0 for three axes, a/g0 for one signed axis (a in m/s²)."""
+    accel = np.asarray(accel, float)
+    return (np.linalg.norm(accel, axis=1) if accel.ndim == 2 else accel) / STANDARD_GRAVITY
+
+
+def shared_signal(record):
+    """What ``record`` shows of the motion both loggers saw, in g, or None (accel, then velocity, then v_up)."""
+    ch = record.channels
+    if "accel" in ch:
+        return from_acceleration(record.time, load_factor(ch["accel"]))
+    if "velocity" in ch:
+        return from_velocity(record.time, *ch["velocity"].T)
+    if "vertical_speed" in ch:
+        return from_vertical_speed(record.time, ch["vertical_speed"])
+    return None
+
+
+def clock_offsets(import_map, records) -> dict:
+    """Every logger's :class:`ClockOffset` to the reference logger's clock."""
+    ref_name = import_map.reference
+    ref_signal = None
+    offsets = {}
+    for spec in import_map.loggers:
+        where = f"key 'logger.{spec.name}.offset'"
+        if spec.name == ref_name:
+            offsets[spec.name] = ClockOffset(0.0, 0.0, "reference")
+            continue
+        if spec.offset is not None:
+            offsets[spec.name] = ClockOffset(spec.offset, 0.0, "given")
+            continue
+        ref_signal = ref_signal or shared_signal(records[ref_name])
+        signal = shared_signal(records[spec.name])
+        for name, sig in ((ref_name, ref_signal), (spec.name, signal)):
+            if sig is None:
+                raise InputError(import_map.path, where, f"offset = \"auto\" needs a signal both loggers see, and "
+                                 f"logger '{name}' has no accel, velocity or vertical_speed channel",
+                                 f"give logger '{spec.name}' offset = <seconds to add to its time>")
+        hint = spec.hint
+        if hint is None and spec.clock == "wall" and import_map.logger(ref_name).clock == "wall":
+            hint = 0.0  # wall clocks agree to within the search window
+        try:
+            found = align_clocks(ref_signal, signal, hint=hint, search=spec.search)
+        except EventNotFound as exc:
+            raise InputError(import_map.path, where, f"the clock of logger '{spec.name}' could not be aligned to "
+                             f"'{ref_name}': {exc}",
+                             "give offset_hint = <approximate seconds to add to its time> (and search = <seconds>), "
+                             "or offset = <seconds>") from None
+        offsets[spec.name] = ClockOffset(found.offset, found.sigma, "auto", found)
+    return offsets
+
+
+def _events(import_map, record, t):
+    """(release on the reference clock, line stretch after release) of the G logger's record."""
+    g = load_factor(record.channels["accel"])
+    columns = ", ".join(record.spec.channels["accel"].columns)
+    fix = ("check the accel column(s), unit and sign (hanging under the carrier reads +1 g), or give "
+           "[events] {} in the map")
+    if import_map.release is not None:
+        release = Event("release", import_map.release, import_map.release_sigma, math.nan, math.nan, 0.0)
+    else:
+        try:
+            release = detect_release(t, g)
+        except EventNotFound as exc:
+            raise InputError(record.spec.path, f"column(s) {columns}", str(exc),
+                             fix.format("release = <time on the reference clock, s>")) from None
+    if import_map.line_stretch is not None:
+        line = Event("line stretch", import_map.line_stretch, import_map.line_stretch_sigma, math.nan, math.nan, 0.0)
+    else:
+        try:
+            found = detect_line_stretch(t, g, release.time, import_map.threshold)
+        except EventNotFound as exc:
+            raise InputError(record.spec.path, f"column(s) {columns}", str(exc),
+                             fix.format("line_stretch = <s after release>") + ", or lower "
+                             "[events] line_stretch_threshold") from None
+        line = replace(found, time=found.time - release.time)
+    return release, line
+
+
+# ---------------------------------------------------------------------------
+# the bundle
+
+
+def _feeds_bundle(spec, import_map):
+    return spec.name == import_map.g_logger or any(name != "accel" for name in spec.channels)
+
+
+def _rows(import_map, records, offsets, release):
+    """The G logger's sample indices in the record window, inside every bundle-feeding logger's span."""
+    g_name = import_map.g_logger
+    t = records[g_name].time + offsets[g_name].offset
+    start = release + import_map.record_start
+    spans = [(rec.time[0] + offsets[name].offset, rec.time[-1] + offsets[name].offset)
+             for name, rec in records.items() if _feeds_bundle(rec.spec, import_map)]
+    first, last = max(s for s, _ in spans), min(e for _, e in spans)
+    end = release + import_map.record_end if import_map.record_end is not None else \
+        min(last, start + MAX_DURATION)
+    idx = np.flatnonzero((t >= max(start, first)) & (t <= min(end, last)))
+    if idx.size < MIN_ROWS:
+        raise InputError(import_map.path, "key 'record'",
+                         f"fewer than {MIN_ROWS} samples of logger '{g_name}' lie between {import_map.record_start:g} "
+                         f"and {'the end' if import_map.record_end is None else f'{import_map.record_end:g} s'} after "
+                         f"release, where every logger has data ({first - release:.3f} … {last - release:.3f} s "
+                         "after release)", "check [record] start and end, and the loggers' offsets")
+    return idx, t[idx]
+
+
+def _assemble(import_map, records, offsets, meta, t_rows, idx, release):
+    """The bundle's columns in SI, and where each came from."""
+    def at_rows(channel):
+        spec = import_map.feeder(channel)
+        rec, off = records[spec.name], offsets[spec.name].offset
+        values = rec.channels[channel]
+        if values.ndim == 2:
+            return np.stack([np.interp(t_rows, rec.time + off, values[:, k]) for k in range(values.shape[1])], axis=1)
+        return np.interp(t_rows, rec.time + off, values)
+
+    def source(channel, how=""):
+        spec = import_map.feeder(channel)
+        ch = spec.channels[channel]
+        return f"{spec.name}: {', '.join(ch.columns)} ({ch.unit}{', sign -1' if ch.sign < 0 else ''}){how}"
+
+    def has(channel):
+        return import_map.feeder(channel) is not None
+
+    g_rec = records[import_map.g_logger]
+    columns = {"time": t_rows - release, "G": load_factor(g_rec.channels["accel"])[idx]}
+    accel = g_rec.spec.channels["accel"]
+    sources = {"time": f"{g_rec.spec.name}: {g_rec.spec.time_column} − release",
+               "G": source("accel", " magnitude / g0" if len(accel.columns) == 3 else " / g0")}
+    velocity = at_rows("velocity") if has("velocity") else None
+    if has("airspeed"):
+        columns["airspeed"], sources["airspeed"] = at_rows("airspeed"), source("airspeed")
+    else:
+        columns["airspeed"] = np.linalg.norm(velocity, axis=1)
+        sources["airspeed"] = source("velocity", " |v|: ground speed, no wind")
+    if has("gamma"):
+        columns["gamma"], sources["gamma"] = at_rows("gamma"), source("gamma")
+    elif velocity is not None:
+        columns["gamma"] = np.degrees(np.arctan2(-velocity[:, 2], np.hypot(velocity[:, 0], velocity[:, 1])))
+        sources["gamma"] = source("velocity", " atan2(-v_down, horizontal speed)")
+    else:
+        ratio = at_rows("vertical_speed") / np.maximum(columns["airspeed"], 1e-9)
+        columns["gamma"] = np.degrees(np.arcsin(np.clip(ratio, -1.0, 1.0)))
+        sources["gamma"] = source("vertical_speed", " asin(v_up / airspeed)")
+    if has("altitude"):
+        columns["altitude"], sources["altitude"] = at_rows("altitude"), source("altitude")
+    if has("density"):
+        columns["density"], sources["density"] = at_rows("density"), source("density")
+    elif "altitude" in columns:
+        try:
+            columns["density"] = standard_density(columns["altitude"], geopotential=False)
+        except ValueError as exc:
+            spec = import_map.feeder("altitude")
+            raise InputError(spec.path, f"column '{spec.channels['altitude'].columns[0]}'", str(exc),
+                             "check the altitude column and its unit in the map") from None
+        sources["density"] = "1976 standard atmosphere at the altitude"
+    if has("qbar"):
+        columns["qbar"], sources["qbar"] = at_rows("qbar"), source("qbar")
+    else:
+        columns["qbar"] = 0.5 * columns["density"] * columns["airspeed"] ** 2
+        sources["qbar"] = "½ ρ airspeed²"
+    u, sigma = meta.units, meta.sigma
+    columns["G_sigma"] = np.full(len(t_rows), float(sigma["G"]))
+    columns["qbar_sigma"] = np.full(len(t_rows), u.si(float(sigma["qbar"]), "pressure"))
+    for p in meta.parachutes:
+        if p.load_cell:
+            columns[p.load_column], sources[p.load_cell] = at_rows(p.load_cell), source(p.load_cell)
+            columns[f"{p.load_column}_sigma"] = np.full(len(t_rows), u.si(float(sigma[p.load_cell]), "force"))
+        if p.flyout_angle:
+            columns[p.angle_column], sources[p.flyout_angle] = at_rows(p.flyout_angle), source(p.flyout_angle)
+            columns[f"{p.angle_column}_sigma"] = np.full(len(t_rows), float(sigma.get(p.flyout_angle, 0.0)))
+    return pd.DataFrame(columns), sources
+
+
+def describe(result) -> list:
+    """What the import found, one line each: loggers (rows, rate, clock offset ± sigma), events, channel sources."""
+    lines = []
+    for name, rec in result.records.items():
+        off = result.offsets[name]
+        clock = {"reference": "reference clock", "given": f"offset {off.offset:+.4f} s (given)"}.get(off.method)
+        if clock is None:
+            al = off.alignment
+            other = "none" if math.isnan(al.runner_up) else f"{al.runner_up:.2f}"
+            clock = (f"offset {off.offset:+.4f} ± {off.sigma:.4f} s (auto: correlation {al.correlation:.2f}, "
+                     f"next best {other})")
+        lines.append(f"{name}: {rec.spec.path.name}, {len(rec.time):,} rows at {rec.rate:.1f} Hz, {clock}")
+    rel, line = result.release, result.line_stretch
+    lines.append(f"release at {rel.time:.4f} ± {rel.sigma:.4f} s on {result.import_map.reference}'s clock"
+                 f"{' (given)' if result.release_given else ''}: time 0 of the bundle")
+    lines.append(f"line stretch {line.time:.4f} ± {line.sigma:.4f} s after release"
+                 f"{' (given)' if result.line_stretch_given else ''}")
+    lines += [f"{channel} <- {source}" for channel, source in result.sources.items()]
+    return lines
+
+
+def import_loggers(import_map, folder) -> ImportResult:
+    """Read the loggers of a checked map, align them, find the events and assemble the bundle (nothing written).
+
+    ``folder`` (the output bundle) names the test when the map's [test] has no name.
+    """
+    records = {spec.name: read_logger(spec) for spec in import_map.loggers}
+    offsets = clock_offsets(import_map, records)
+    g_rec = records[import_map.g_logger]
+    release, line = _events(import_map, g_rec, g_rec.time + offsets[import_map.g_logger].offset)
+    meta = bundle_metadata(import_map, {"release": (0.0, 0.0), "line_stretch": (line.time, line.sigma)}, folder)
+    idx, t_rows = _rows(import_map, records, offsets, release.time)
+    data, sources = _assemble(import_map, records, offsets, meta, t_rows, idx, release.time)
+    test = FlightTest(name=meta.name, phase=meta.phase, units=meta.units, vehicle=meta.vehicle,
+                      parachutes=meta.parachutes, data=data, priors_files=meta.priors_files)
+    return ImportResult(test, import_map, records, offsets, release, line, sources,
+                        release_given=import_map.release is not None,
+                        line_stretch_given=import_map.line_stretch is not None)
+
+
+def write_import(result, out) -> Path:
+    """Write the bundle and import.json atomically; the bundle is read back and checked before it is put in place."""
+    def verify(tmp):
+        try:
+            read_bundle(tmp)
+        except BundleError as exc:
+            raise InputError(result.import_map.path, "", f"the bundle made from the loggers would be refused: "
+                             f"{Path(exc.file).name}, {exc.where}: {exc.problem}",
+                             f"{exc.fix} (in the map: [record], [test] or a channel's unit)") from None
+
+    text = json.dumps(result.report(), indent=2, allow_nan=False) + "\n"
+    return write_bundle(result.test, Path(out), extra_files={REPORT_NAME: text}, check=verify)
+
+
+def import_bundle(map_path, out) -> ImportResult:
+    """``cpas-bayes import``: read the map and the loggers, and write the bundle folder ``out``."""
+    import_map = read_import_map(map_path, out)
+    result = import_loggers(import_map, out)
+    write_import(result, out)
+    return replace(result, test=replace(result.test, source=Path(out)))

@@ -1,0 +1,359 @@
+"""``cpas-bayes import``: logger CSV files with known truth become a bundle that read_bundle accepts.
+
+The loggers are simulated (tests/drop_loggers.py): a vehicle hangs under its
+carrier, is released, falls, and is snatched by its parachute. The
+accelerometer logger and the GNSS logger each have their own clock, rate and
+noise. The tests check the detected release and line stretch, and the
+recovered clock offset, against the truth within a small multiple of the
+stated 1-sigma (and that the sigma is not vacuously large), the written
+bundle's channels and units, and the refusals of bad maps and files.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+import pytest
+import tomli_w
+
+import cpas_bayes as cb
+from cpas_bayes.app.cli import main
+from cpas_bayes.core.units import STANDARD_GRAVITY as G0
+from cpas_bayes.data import logger_events as le
+from cpas_bayes.data.bundle import read_bundle
+from cpas_bayes.data.import_map import read_import_map
+from cpas_bayes.data.importer import REPORT_NAME, import_loggers
+
+from drop_loggers import DropTruth, accel_logger, air_density, gnss_logger, simulate
+
+TRUTH = DropTruth(duration=60.0)
+OFFSET_1H15M02S = 3600 + 15 * 60 + 2  # s
+K = 3.0  # errors must lie within K stated sigmas
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate(TRUTH)
+
+
+def _csv(path, header, columns, formats):
+    lines = [",".join(header)]
+    lines += [",".join(f % v if isinstance(f, str) else f(v) for f, v in zip(formats, row)) for row in zip(*columns)]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def write_loggers(folder, sim, seed=0, accel_rate=200.0, gnss_rate=10.0, accel_clock=37.25,
+                  gnss_clock=37.25 + OFFSET_1H15M02S + 0.137):
+    """imu.csv (time in ms, three axes in m/s²) and gnss.csv (s; velocity NED, m/s; altitude, m).
+
+    Returns the truth on the imu clock: release, line stretch after release, and
+    the offset to add to the GNSS clock (t_imu = t_gnss + offset).
+    """
+    rng = np.random.default_rng(seed)
+    ta, fa = accel_logger(sim, accel_rate, accel_clock, 0.05, rng)
+    tg, vg, hg = gnss_logger(sim, gnss_rate, gnss_clock, 0.05, 0.3, rng)
+    _csv(folder / "imu.csv", ["t_ms", "ax", "ay", "az"], [ta * 1000, *fa.T], ["%.3f", "%.5f", "%.5f", "%.5f"])
+    _csv(folder / "gnss.csv", ["time", "vn", "ve", "vd", "alt"], [tg, *vg.T, hg], ["%.4f"] + ["%.4f"] * 4)
+    return {"release": TRUTH.release + accel_clock, "line_stretch": TRUTH.line_stretch - TRUTH.release,
+            "offset": accel_clock - gnss_clock}
+
+
+def map_document(**loggers):
+    """A column map for imu.csv + gnss.csv (the logger tables may be replaced or extended)."""
+    doc = {
+        "logger": {
+            "imu": {"file": "imu.csv", "time": {"column": "t_ms", "unit": "ms"},
+                    "channels": {"accel": {"columns": ["ax", "ay", "az"], "unit": "m/s^2"}}},
+            "gnss": {"file": "gnss.csv", "time": {"column": "time", "unit": "s"}, "offset": "auto",
+                     "offset_hint": -4500.0,
+                     "channels": {"velocity": {"columns": ["vn", "ve", "vd"], "unit": "m/s"},
+                                  "altitude": {"column": "alt", "unit": "m"}}},
+        },
+        "record": {"start": -0.5, "end": 30.0},
+        "test": {
+            "name": "DT-sim", "units": "SI", "phase": "drogue",
+            "vehicle": {"weight": TRUTH.mass * G0, "weight_sigma": 50.0, "cds": TRUTH.cds_vehicle,
+                        "cds_sigma": 0.1},
+            "parachute": [{"id": "D1", "kind": "drogue", "inflation": "infinite", "diameter": 7.0,
+                           "weight": 300.0, "weight_sigma": 10.0,
+                           "stage": [{"label": "full open", "start": "line_stretch", "delay": 0.0,
+                                      "start_sigma": 0.05}]}],
+            "sigma": {"G": 0.05, "qbar": 5.0},
+        },
+    }
+    doc["logger"].update(loggers)
+    return doc
+
+
+def write_map(folder, doc):
+    path = folder / "map.toml"
+    path.write_text(tomli_w.dumps(doc), encoding="utf-8")
+    return path
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_import_recovers_events_and_a_1h15m02s_offset(tmp_path, sim, capsys):
+    """200 Hz accelerometer in ms, 10 Hz GNSS in s whose clock is 1 h 15 min 2.137 s ahead; hint -4500 s."""
+    truth = write_loggers(tmp_path, sim)
+    out = tmp_path / "bundle"
+    code, printed, err = run(capsys, "import", write_map(tmp_path, map_document()), "--out", out)
+    assert code == 0, err
+    assert "release at" in printed and "line stretch" in printed and "offset" in printed
+
+    report = json.loads((out / REPORT_NAME).read_text())
+    release, line = report["release"], report["line_stretch"]
+    gnss = report["loggers"]["gnss"]
+    errors = {"release": (release["time_on_reference_clock_s"] - truth["release"], release["sigma_s"]),
+              "line stretch": (line["time_after_release_s"] - truth["line_stretch"], line["sigma_s"]),
+              "offset": (gnss["offset_s"] - truth["offset"], gnss["offset_sigma_s"])}
+    for what, (error, sigma) in errors.items():
+        assert abs(error) <= K * sigma, f"{what}: error {error * 1e3:.2f} ms, sigma {sigma * 1e3:.2f} ms"
+    # the sigmas say something: a few sample intervals at most
+    assert release["sigma_s"] < 0.02 and line["sigma_s"] < 0.02 and gnss["offset_sigma_s"] < 0.01
+    assert gnss["offset_method"] == "auto" and gnss["correlation"] > 0.8
+
+    test = read_bundle(out)  # the package's own reader accepts it
+    assert test.name == "DT-sim" and test.units.name == "SI"
+    assert set(test.channels) == {"time", "G", "qbar", "airspeed", "gamma", "density", "altitude"}
+    t = test.time
+    assert t[0] == pytest.approx(-0.5, abs=0.006) and t[-1] == pytest.approx(30.0, abs=0.006)
+    assert test.sample_rate == pytest.approx(200.0, rel=1e-3)
+    stage = test.parachutes[0].stages[0]
+    assert stage.start == pytest.approx(line["time_after_release_s"])
+    assert stage.start_sigma == pytest.approx(np.hypot(line["sigma_s"], 0.05))
+    # channels against the truth, on the bundle's time (release = 0)
+    true_t, v, h, f = sim
+    at = t + TRUTH.release
+    hanging = t < -0.1
+    assert np.allclose(test.data["G"][hanging], 1.0, atol=0.2)
+    speed = np.interp(at, true_t, np.linalg.norm(v, axis=1))
+    assert np.abs(test.data["airspeed"] - speed).max() < 0.5
+    qbar = 0.5 * air_density(np.interp(at, true_t, h)) * speed ** 2
+    assert np.allclose(test.data["qbar"], qbar, rtol=0.03)
+    assert test.data["gamma"][hanging].abs().max() < 1.0                  # level flight under the carrier
+    assert test.data["gamma"].iloc[-1] == pytest.approx(-90.0, abs=5.0)   # straight down under the canopy
+    assert np.allclose(test.data["G_sigma"], 0.05) and np.allclose(test.data["qbar_sigma"], 5.0)
+
+
+def test_offset_without_a_hint_is_found_by_the_full_search(tmp_path, sim):
+    """Elapsed clocks and no hint: every lag with enough overlap is searched (the library call, cb.import_bundle)."""
+    truth = write_loggers(tmp_path, sim, seed=1)
+    doc = map_document()
+    del doc["logger"]["gnss"]["offset_hint"]
+    result = cb.import_bundle(write_map(tmp_path, doc), tmp_path / "b")
+    assert read_bundle(result.test.source).name == "DT-sim"
+    off = result.offsets["gnss"]
+    assert abs(off.offset - truth["offset"]) <= K * off.sigma
+    assert off.alignment.search == (-np.inf, np.inf)
+    assert off.alignment.runner_up < 0.6 * off.alignment.correlation   # the match is distinct
+
+
+@pytest.mark.parametrize("accel_rate", [20.0, 50.0])
+def test_low_rate_accelerometer(tmp_path, sim, accel_rate):
+    """At 20 and 50 Hz the stated sigmas grow with the sample interval and still hold the truth."""
+    truth = write_loggers(tmp_path, sim, seed=2, accel_rate=accel_rate)
+    result = import_loggers(read_import_map(write_map(tmp_path, map_document()), tmp_path / "b"), tmp_path / "b")
+    dt = 1.0 / accel_rate
+    for event, true in ((result.release, truth["release"]), (result.line_stretch, truth["line_stretch"])):
+        assert abs(event.time - true) <= K * event.sigma
+        assert dt / np.sqrt(12) <= event.sigma < 2 * dt
+    off = result.offsets["gnss"]
+    assert abs(off.offset - truth["offset"]) <= K * off.sigma
+
+
+def test_wall_clocks_align_files_started_1h15m02s_apart(tmp_path, sim):
+    """ISO timestamps: the GNSS file starts 1 h 15 min 2 s before the accelerometer's, its clock 0.73 s fast."""
+    rng = np.random.default_rng(3)
+    start = datetime(2024, 5, 14, 11, 15, 2, tzinfo=timezone.utc)   # true time 0: the accelerometer's first sample
+    clock_error = 0.73
+    ta, fa = accel_logger(sim, 100.0, 0.0, 0.05, rng, start=0.0)
+    tg, vg, hg = gnss_logger(sim, 10.0, clock_error, 0.05, 0.3, rng, start=-OFFSET_1H15M02S)
+
+    def iso(seconds):
+        return (start + timedelta(seconds=float(seconds))).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+    _csv(tmp_path / "imu.csv", ["utc", "ax", "ay", "az"], [ta, *fa.T], [iso, "%.5f", "%.5f", "%.5f"])
+    _csv(tmp_path / "gnss.csv", ["utc", "vn", "ve", "vd", "alt"], [tg, *vg.T, hg], [iso] + ["%.4f"] * 4)
+    doc = map_document()
+    doc["logger"]["imu"]["time"] = {"column": "utc", "unit": "iso"}
+    doc["logger"]["gnss"]["time"] = {"column": "utc", "unit": "iso"}
+    del doc["logger"]["gnss"]["offset_hint"]  # wall clocks: the search is centred on 0
+    out = tmp_path / "bundle"
+    result = import_loggers(read_import_map(write_map(tmp_path, doc), out), out)
+    gnss = result.records["gnss"]
+    assert gnss.time[0] == pytest.approx(start.timestamp() - OFFSET_1H15M02S + clock_error, abs=0.2)
+    off = result.offsets["gnss"]
+    assert abs(off.offset - (-clock_error)) <= K * off.sigma and off.alignment.search == (-60.0, 60.0)
+    assert abs(result.release.time - (start.timestamp() + TRUTH.release)) <= K * result.release.sigma
+    utc = datetime.fromisoformat(result.report()["release"]["utc"])
+    assert abs((utc - start).total_seconds() - TRUTH.release) <= K * result.release.sigma
+
+
+def test_second_accelerometer_single_axis_in_g(tmp_path, sim):
+    """A 100 Hz logger with one axis (z down, in g, sign -1) and its own clock is aligned by correlation."""
+    truth = write_loggers(tmp_path, sim, seed=4)
+    rng = np.random.default_rng(5)
+    true_t, _, _, f = sim
+    t2 = 1.0 + np.arange(0.0, 55.0, 0.01) + rng.uniform(0, 0.01)
+    z_down = np.interp(t2, true_t, f[:, 2]) / G0 + rng.normal(0, 0.03, t2.size)
+    clock2 = 812.5
+    _csv(tmp_path / "box.csv", ["sec", "z"], [t2 + clock2, z_down], ["%.4f", "%.5f"])
+    box = {"file": "box.csv", "time": {"column": "sec", "unit": "s"}, "offset": "auto", "offset_hint": -800.0,
+           "channels": {"accel": {"column": "z", "unit": "g", "sign": -1}}}
+    result = import_loggers(read_import_map(write_map(tmp_path, map_document(box=box)), tmp_path / "b"),
+                            tmp_path / "b")
+    off = result.offsets["box"]
+    true_offset = (truth["release"] - TRUTH.release) - clock2
+    assert abs(off.offset - true_offset) <= K * off.sigma < 0.01
+    assert result.import_map.g_logger == "imu"  # G still from the reference's three axes
+
+
+def test_events_on_a_clean_step():
+    """detect_release on a noise-free step between two samples: the interval's midpoint, sigma Δt/√12-ish."""
+    t = np.arange(0.0, 5.0, 0.01)
+    g = np.where(t < 2.0034, 1.0, 0.05)
+    event = le.detect_release(t, g)
+    assert event.time == pytest.approx(2.005, abs=1e-9)  # half-level crossing between 2.00 and 2.01
+    assert abs(event.time - 2.0034) <= event.sigma <= 0.01
+    with pytest.raises(le.EventNotFound, match="no line stretch"):
+        le.detect_line_stretch(t, g, event.time)
+
+
+# ---------------------------------------------------------------------------
+# refusals: exit status 2, a message naming the file, the place and the fix, nothing written
+
+
+def _refused(capsys, tmp_path, doc, out=None):
+    out = out or tmp_path / "bundle"
+    code, _, err = run(capsys, "import", write_map(tmp_path, doc), "--out", out)
+    assert code == 2, err
+    assert "Fix:" in err and "Traceback" not in err
+    return err
+
+
+def test_missing_column_names_file_column_and_fix(tmp_path, sim, capsys):
+    write_loggers(tmp_path, sim)
+    doc = map_document()
+    doc["logger"]["imu"]["channels"]["accel"]["columns"] = ["ax", "ay", "a_z"]
+    err = _refused(capsys, tmp_path, doc)
+    assert "imu.csv" in err and "column 'a_z'" in err and "did you mean 'az'" in err
+    assert "logger.imu.channels.accel" in err and "correct the column name in the map" in err
+    assert not (tmp_path / "bundle").exists()
+
+
+def test_unknown_unit_is_refused_before_any_file_is_read(tmp_path, capsys):
+    (tmp_path / "imu.csv").write_text("not read\n")
+    (tmp_path / "gnss.csv").write_text("not read\n")
+    doc = map_document()
+    doc["logger"]["imu"]["channels"]["accel"]["unit"] = "m/s2"
+    err = _refused(capsys, tmp_path, doc)
+    assert "map.toml" in err and "logger.imu.channels.accel.unit" in err and "unknown unit 'm/s2'" in err
+    assert "'m/s^2', 'ft/s^2' or 'g'" in err
+    doc["logger"]["imu"]["channels"]["accel"]["unit"] = "m/s"   # a unit, of the wrong quantity
+    assert "is not a unit of acceleration" in _refused(capsys, tmp_path, doc)
+    assert not (tmp_path / "bundle").exists()
+
+
+def test_output_folder_not_ours_is_refused_untouched(tmp_path, sim, capsys):
+    write_loggers(tmp_path, sim)
+    out = tmp_path / "bundle"
+    out.mkdir()
+    (out / "notes.txt").write_text("the user's\n")
+    map_path = write_map(tmp_path, map_document())
+    before = sorted(p.name for p in tmp_path.iterdir())
+    code, _, err = run(capsys, "import", map_path, "--out", out)
+    assert code == 2 and "Fix:" in err
+    assert "notes.txt" in err and "--out" in err
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no temporary folder left beside it
+
+
+@pytest.mark.parametrize("edit, expected", [
+    (lambda d: d["logger"]["gnss"].update(file="/etc/gnss.csv"), "absolute"),
+    (lambda d: d["logger"]["gnss"].update(file="../gnss.csv"), "outside the map folder"),
+    (lambda d: d["logger"]["gnss"]["time"].update(unit="milis"), "unknown unit 'milis'"),
+    (lambda d: d["logger"]["gnss"].update(offset="atuo"), "unknown offset 'atuo'"),
+    (lambda d: d["logger"]["gnss"]["channels"].pop("velocity"), "the bundle needs 'airspeed'"),
+    (lambda d: d["test"]["parachute"][0]["stage"][0].update(start="line_strech"), "did you mean 'line_stretch'"),
+    (lambda d: d["test"]["vehicle"].update(weight_sigm=1.0), "key 'test.vehicle.weight_sigm'"),
+    (lambda d: d["test"]["sigma"].pop("G"), "test.sigma.G"),
+    (lambda d: d.update(reference="gps"), "no logger named 'gps'"),
+])
+def test_bad_maps_are_refused_naming_the_key(tmp_path, sim, capsys, edit, expected):
+    write_loggers(tmp_path, sim)
+    doc = map_document()
+    edit(doc)
+    err = _refused(capsys, tmp_path, doc)
+    assert expected in err and "map.toml" in err
+    assert not (tmp_path / "bundle").exists()
+
+
+def test_bad_logger_files_are_refused_naming_the_row(tmp_path, sim, capsys):
+    write_loggers(tmp_path, sim)
+    lines = (tmp_path / "gnss.csv").read_text().splitlines()
+    lines[5], lines[6] = lines[6], lines[5]           # two rows swapped: time goes back at file row 7
+    (tmp_path / "gnss.csv").write_text("\n".join(lines) + "\n")
+    err = _refused(capsys, tmp_path, map_document())
+    assert "gnss.csv, row 7, column 'time'" in err and "not strictly increasing" in err
+
+    write_loggers(tmp_path, sim)
+    lines = (tmp_path / "imu.csv").read_text().splitlines()
+    lines[3] = lines[3].replace(",", ",n/a", 1)
+    (tmp_path / "imu.csv").write_text("\n".join(lines) + "\n")
+    err = _refused(capsys, tmp_path, map_document())
+    assert "imu.csv, row 4, column 't_ms'" in err or "imu.csv, row 4, column 'ax'" in err
+
+
+def test_no_release_in_the_record_is_said_with_the_fix(tmp_path, capsys):
+    t = np.arange(0.0, 30.0, 0.01)
+    rng = np.random.default_rng(6)
+    _csv(tmp_path / "imu.csv", ["t_ms", "ax", "ay", "az"],
+         [t * 1000, *rng.normal(0, 0.3, (2, t.size)), -G0 + rng.normal(0, 0.3, t.size)],
+         ["%.1f", "%.4f", "%.4f", "%.4f"])
+    _csv(tmp_path / "gnss.csv", ["time", "vn", "ve", "vd", "alt"], [t[::10], *np.ones((3, t.size // 10)),
+         np.full(t.size // 10, 100.0)], ["%.2f"] * 5)
+    doc = map_document()
+    doc["logger"]["gnss"]["offset"] = 0.0
+    del doc["logger"]["gnss"]["offset_hint"]
+    err = _refused(capsys, tmp_path, doc)
+    assert "imu.csv" in err and "no release" in err and "[events] release" in err
+
+
+def test_template_and_events_given_in_the_map(tmp_path, sim, capsys):
+    """Metadata from a template test.toml; release and line stretch given (not detected) are used as given."""
+    truth = write_loggers(tmp_path, sim, seed=7)
+    doc = map_document()
+    template = dict(doc.pop("test"))
+    template["parachute"] = [dict(template["parachute"][0], stage=[{"label": "full open", "start": 1.7,
+                                                                   "start_sigma": 0.1}])]
+    (tmp_path / "template.toml").write_text(tomli_w.dumps(template), encoding="utf-8")
+    doc["template"] = "template.toml"
+    doc["events"] = {"release": truth["release"] + 0.004, "release_sigma": 0.01, "line_stretch": 1.65,
+                     "line_stretch_sigma": 0.02}
+    out = tmp_path / "bundle"
+    code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", out)
+    assert code == 0, err
+    assert "release at" in printed and "(given)" in printed
+    report = json.loads((out / REPORT_NAME).read_text())
+    assert report["release"]["time_on_reference_clock_s"] == truth["release"] + 0.004
+    assert report["release"]["given_in_map"] and report["line_stretch"]["time_after_release_s"] == 1.65
+    stage = read_bundle(out).parachutes[0].stages[0]
+    assert (stage.start, stage.start_sigma) == (1.7, 0.1)
+
+
+def test_a_bundle_read_bundle_would_refuse_is_not_written(tmp_path, sim, capsys):
+    """A stage starting after the record ends: the written bundle is read back, refused, and not put in place."""
+    write_loggers(tmp_path, sim)
+    doc = map_document()
+    doc["test"]["parachute"][0]["stage"][0]["delay"] = 100.0
+    err = _refused(capsys, tmp_path, doc)
+    assert "map.toml" in err and "would be refused" in err and "stage[0].start" in err
+    assert "after the record ends" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gnss.csv", "imu.csv", "map.toml"]
