@@ -181,7 +181,8 @@ def _health_footer(fig, warnings, shown=4):
     """The fit's health warnings (summary.json ``warnings``) under the figure, in red; nothing when clean."""
     if not warnings:
         return
-    lines = [textwrap.shorten(f"[{w['code']}] {w['message']}", 190) for w in warnings[:shown]]
+    width = max(60, int(fig.get_figwidth() * 15))   # characters of 8-pt text across the figure
+    lines = [textwrap.fill(f"[{w['code']}] {w['message']}", width) for w in warnings[:shown]]
     if len(warnings) > shown:
         lines.append(f"... and {len(warnings) - shown} more in summary.json")
     fig.supxlabel("FIT HEALTH WARNINGS\n" + "\n".join(lines), color="firebrick", fontsize=8, ha="center")
