@@ -159,3 +159,15 @@ def test_a_stated_diameter_sigma_makes_the_diameter_a_fitted_parameter(example_d
     bundle_files(folder).set_key("parachute", 0, "diameter_sigma", value=10.0)
     with pytest.raises(InputError, match="more than a quarter of the diameter"):
         read_bundle(folder)
+
+
+def test_the_monte_carlo_takes_ck_of_finite_mass_stages_only_when_the_memo_has_it(rescue_bundle, bundle_files):
+    from cpas_bayes.loads.montecarlo import ClusterLayout, _needed_columns
+
+    bundle_files(rescue_bundle).set_key("parachute", 0, "inflation", value="finite")
+    layout = ClusterLayout.from_test(read_bundle(rescue_bundle))
+    key = layout.stage_key(0, 0)
+    without = {c for c, _, _ in _needed_columns(layout, 0, "n_p")}
+    assert f"{key}.ck" not in without                                  # C_k = 1: the seed's finite mass
+    with_ck = {c for c, _, _ in _needed_columns(layout, 0, "n_p", [f"{key}.ck", f"{key}.tk"])}
+    assert {f"{key}.ck", f"{key}.tk"} <= with_ck

@@ -25,7 +25,7 @@ the first data sample), the start time and the duration. Per run and canopy:
 
 * stage drag areas CDS_i = ε_i·CDS_o, with ε = 1 for the full-open stage;
 * C_k = 1 and t_k = 0 for finite-mass canopies (seed §VI), memo values for
-  infinite-mass ones;
+  infinite-mass ones (and for finite-mass ones whose kind's memo holds them);
 * stage starts t_i = t_i,nominal + N(0, σ_t,i²) from the bundle's ``start`` and
   ``start_sigma`` (cutter-time dispersion). Stage order is kept: a draw that
   would not follow the previous stage is moved to 1 ms after it (with the
@@ -278,15 +278,16 @@ def _memo_where(memo: Memo, joint):
     return memo.folder / name if memo.folder else name
 
 
-def _needed_columns(layout: ClusterLayout, chute: int, mode: str):
-    """(column, role, stage index) the memo must supply for canopy ``chute``."""
+def _needed_columns(layout: ClusterLayout, chute: int, mode: str, available=()):
+    """(column, role, stage index) the memo must supply for canopy ``chute``; a finite-mass stage takes
+    C_k and t_k when the memo has them (a kind whose priors let it over-inflate), else C_k = 1."""
     n = int(layout.stages_per_chute[chute])
     need = [("parachute.cd_o", "cds_o", None)]
     for k in range(n):
         key = layout.stage_key(chute, k)
         need.append((f"{key}.{mode}", "fill", k))
         need.append((f"{key}.expopen", "expopen", k))
-        if layout.inflations[chute] == "infinite":
+        if layout.inflations[chute] == "infinite" or {f"{key}.ck", f"{key}.tk"} <= set(available):
             need.append((f"{key}.ck", "ck", k))
             need.append((f"{key}.tk", "tk", k))
         if k < n - 1:
@@ -330,7 +331,7 @@ def draw_run_inputs(memo: Memo, layout: ClusterLayout, runs: int, rng: np.random
                 frame[f"{key}.n"] = memo.entry(kind, key, "n").sample(rng, len(frame))
         for j, i in enumerate(chutes):
             rows = slice(j * runs, (j + 1) * runs)
-            for column, role, k in _needed_columns(layout, i, mode):
+            for column, role, k in _needed_columns(layout, i, mode, frame.columns):
                 where = f"key '{kind}.{column}'" if not joint else f"column '{column}' of kind '{kind}'"
                 if column not in frame.columns:
                     stage = f", stage '{layout.stage_labels[i][k]}'" if k is not None else ""
