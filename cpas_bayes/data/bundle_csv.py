@@ -109,14 +109,22 @@ def read_csv(path, toml_name="test.toml"):
     return frame
 
 
-def numeric_column(frame, column, path):
-    """The finite numbers of one column; refuses the first empty, non-numeric or non-finite cell."""
+def parse_numbers(frame, column):
+    """One text column as floats, and the index and text of its first empty, non-numeric or non-finite
+    cell (None, None when every cell is a finite number)."""
     raw = frame[column].str.strip()
     values = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
     bad = ~np.isfinite(values)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        cell = raw.iloc[i]
+    if not bad.any():
+        return values, None, None
+    i = int(np.flatnonzero(bad)[0])
+    return values, i, raw.iloc[i]
+
+
+def numeric_column(frame, column, path):
+    """The finite numbers of one column; refuses the first empty, non-numeric or non-finite cell."""
+    values, i, cell = parse_numbers(frame, column)
+    if i is not None:
         what = "is empty" if cell == "" else (f"is not a number ({shown(cell)})" if np.isnan(values[i]) and
                                               cell.lower() not in ("nan", "-nan", "+nan") else
                                               f"is {shown(cell)}, not a finite number")

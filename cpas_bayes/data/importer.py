@@ -42,6 +42,7 @@ from cpas_bayes.core.files import jsonable
 from cpas_bayes.core.inputs import did_you_mean, shown
 from cpas_bayes.core.units import STANDARD_GRAVITY
 from cpas_bayes.data.bundle import FlightTest, read_bundle
+from cpas_bayes.data.bundle_csv import parse_numbers
 from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
@@ -171,12 +172,8 @@ def _row(spec, i):
 
 
 def _numbers(spec, frame, column):
-    raw = frame[column].str.strip()
-    values = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        cell = raw.iloc[i]
+    values, i, cell = parse_numbers(frame, column)
+    if i is not None:
         _fail_file(spec, f"{_row(spec, i)}, column '{column}'",
                    "the cell is empty" if cell == "" else f"the cell {shown(cell)} is not a finite number",
                    "every cell of a mapped column must hold a number; remove or repair the row")
