@@ -171,3 +171,22 @@ def test_the_monte_carlo_takes_ck_of_finite_mass_stages_only_when_the_memo_has_i
     assert f"{key}.ck" not in without                                  # C_k = 1: the seed's finite mass
     with_ck = {c for c, _, _ in _needed_columns(layout, 0, "n_p", [f"{key}.ck", f"{key}.tk"])}
     assert {f"{key}.ck", f"{key}.tk"} <= with_ck
+
+
+def test_a_kind_named_like_the_memos_own_table_is_refused(rescue_bundle, bundle_files):
+    bundle_files(rescue_bundle).set_key("parachute", 0, "kind", value="provenance")
+    with pytest.raises(InputError, match="the model memo uses the name"):
+        read_bundle(rescue_bundle)
+
+
+def test_every_catalogued_term_builds_for_a_kind_of_the_users(rescue_bundle):
+    from cpas_bayes.stats.model_terms import EXTENSIONS, make_extension
+
+    test = read_bundle(rescue_bundle)
+    reduction = reduce_test(test)
+    for name in EXTENSIONS:
+        model = prepare_model(test, reduction, extensions=(make_extension(name),))
+        assert np.isfinite(model.log_prior(model.sample_prior(np.random.default_rng(0), 4))).any(), name
+    breathing = prepare_model(test, reduction, extensions=(make_extension("canopy_breathing"),))
+    prior = breathing.parameters[breathing.index["breathing_frequency"]].prior
+    assert prior.median == pytest.approx(10.0 / test.parachutes[0].diameter)   # 1/D_o scaling: 1.4 Hz at 7 m

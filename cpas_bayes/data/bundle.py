@@ -314,12 +314,16 @@ def _parse_parachutes(doc, reader, units):
 
 
 PRIORS_SUFFIX = ".toml"
+RESERVED_KINDS = ("provenance",)   # memo.toml's own tables sit beside its kinds
 
 
 def check_kind(kind, file, where, error):
     """A parachute kind: the package's (priors shipped) or the user's own (a safe name whose priors come from
     a file), but never a package kind in other letter case (a typo, not a new kind)."""
     check_name(kind, file, where, "parachute kind", error)
+    if kind.lower() in RESERVED_KINDS:
+        raise error(file, where, f"{shown(kind)} cannot be a parachute kind: the model memo uses the name for "
+                    "its own table", "choose another name for the kind")
     near = next((k for k in KINDS if k == kind.lower() and k != kind), None)
     if near:
         raise error(file, where, f"unknown kind {shown(kind)}", f"did you mean '{near}'? (kinds are lower case)")

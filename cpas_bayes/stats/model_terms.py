@@ -127,6 +127,16 @@ class SensorLag(Extension):
 
 
 BREATHING_FREQUENCY = {"drogue": 1.2, "pilot": 1.5, "fbcp": 1.5, "main": 0.35}  # Hz, prior medians
+# Kinds of the user's own: breathing scales roughly as 1/D_o (f·D_o ≈ 8–12 m/s for the Drogue's 7 m and the
+# Main's 35 m); clipped to the prior's usable range.
+BREATHING_FREQUENCY_TIMES_DIAMETER = 10.0   # m/s
+
+
+def breathing_frequency_median(parachute):
+    """Prior median of a canopy's breathing frequency, Hz: its kind's, else from its diameter."""
+    if parachute.kind in BREATHING_FREQUENCY:
+        return BREATHING_FREQUENCY[parachute.kind]
+    return float(np.clip(BREATHING_FREQUENCY_TIMES_DIAMETER / parachute.diameter, 0.1, 3.0))
 
 
 class CanopyBreathing(Extension):
@@ -137,8 +147,8 @@ class CanopyBreathing(Extension):
         self.frequency_guess = frequency_guess
 
     def parameters(self, model):
-        kinds = {p.kind for p in model.parachutes}
-        median = float(np.exp(np.mean([math.log(BREATHING_FREQUENCY[k]) for k in kinds])))
+        kinds = {p.kind: breathing_frequency_median(p) for p in model.parachutes}
+        median = float(np.exp(np.mean([math.log(f) for f in kinds.values()])))
         return [Parameter("breathing_amplitude", Uniform(0.0, 0.25), "", self.name),
                 Parameter("breathing_frequency", LogNormal(median, 0.6, 0.05, 5.0), "Hz", self.name),
                 Parameter("breathing_damping", Uniform(0.01, 0.6), "", self.name)]
