@@ -133,3 +133,11 @@ def test_the_clean_example_fit_has_no_warning(drogue):
     assert warnings == []
     stage = fit.summary["parachutes"]["D3"]["stages"][0]
     assert 0.1 < stage["t_f"]["q50"] < stage["t_fp"]["q50"] < 1.0     # fill times in seconds beside n and n_p
+
+
+def test_a_fill_spanning_few_samples_warns_about_the_logger_rate():
+    model = SimpleNamespace(parachutes=[SimpleNamespace(id="R1", stages=[object(), object()])])
+    draws = {"R1.s1.t_fp": np.full(50, 0.3), "R1.s2.t_fp": np.full(50, 1.2)}
+    w = fit_health.sample_rate_warnings(model, draws, sample_interval=0.05)        # 20 Hz
+    assert [x["parameter"] for x in w] == ["R1.s1.n_p"] and "6.0 samples at 20 Hz" in w[0]["message"]
+    assert fit_health.sample_rate_warnings(model, draws, sample_interval=0.005) == []   # 200 Hz

@@ -26,6 +26,11 @@ has none. The checks and their thresholds:
 ``convergence``
     R-hat above 1.01 or bulk ESS below 400 for some parameter, or an
     ensemble that did not meet its stopping rule.
+``sample_rate``
+    A stage whose time to peak (t_fp, posterior median) spans fewer than
+    MIN_SAMPLES_PER_FILL samples of the record: a slow logger's samples may
+    straddle the peak, so the measured peak reads low and the fit's C_k and
+    n_p with it (a 20 Hz accelerometer on a 0.3 s fill gives 6 samples).
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ ESS_MIN = 400
 # canopy (no over-inflation), not a prior that cut the data off.
 PHYSICAL_LIMITS = {"ck": (1.0, None), "eps": (0.0, 1.0)}
 FROM_BUNDLE = ("vehicle_weight", "vehicle_cds")   # priors built from the bundle's stated values and sigmas
+MIN_SAMPLES_PER_FILL = 8
 MULTIPLIERS = {"noise_acc": "accelerometer", "noise_lc": "load-cell"}
 
 
@@ -142,6 +148,25 @@ def timing_warnings(model, draws, data_end):
     return out
 
 
+def sample_rate_warnings(model, draws, sample_interval):
+    """``sample_rate`` warnings: fills spanning fewer than MIN_SAMPLES_PER_FILL samples."""
+    out = []
+    for p in model.parachutes:
+        for k in range(len(p.stages)):
+            t_fp = draws.get(f"{p.id}.{stage_tag(k)}.t_fp")
+            if t_fp is None:
+                continue
+            fill = float(np.median(t_fp))
+            samples = fill / sample_interval
+            if 0 < samples < MIN_SAMPLES_PER_FILL:
+                out.append(warning(
+                    "sample_rate",
+                    f"{p.id} stage {k + 1} reaches its peak in {fill:.3f} s, {samples:.1f} samples at "
+                    f"{1 / sample_interval:.0f} Hz: the samples may straddle the peak, so C_k and n_p may read low; "
+                    "log faster or treat this stage's peak with care", f"{p.id}.{stage_tag(k)}.n_p"))
+    return out
+
+
 def convergence_warnings(diagnostics):
     out = []
     per = diagnostics.get("per_parameter", {})
@@ -171,6 +196,8 @@ def fit_warnings(model, tree, diagnostics, ppc_table=None):
     out += multiplier_warnings(draws)
     if ppc_table is not None:
         out += ppc_warnings(ppc_table)
-    out += timing_warnings(model, draws, float(model.obs.native_time[-1]))
+    native = np.asarray(model.obs.native_time, float)
+    out += timing_warnings(model, draws, float(native[-1]))
+    out += sample_rate_warnings(model, draws, float(np.median(np.diff(native))))
     out += convergence_warnings(diagnostics)
     return out
