@@ -123,7 +123,7 @@ def test_a_prior_bound_below_the_truth_warns_naming_parameter_and_bound(drogue, 
     bound = [w for w in warnings if w["code"] == "prior_bound" and w["parameter"].endswith(".cds_o")]
     assert bound, warnings
     area_bound = fit.model.parameters[fit.model.index[bound[0]["parameter"]]].prior.support[1]
-    assert f"upper bound {area_bound:g}" in bound[0]["message"]
+    assert f"upper bound {area_bound:g} m², i.e. cd_o = 0.45 on S_o" in bound[0]["message"]   # as the file says
     assert {"error_multiplier", "ppc"} <= {w["code"] for w in warnings}   # the misfit shows too
     assert fit.summary["warnings"] == warnings
 

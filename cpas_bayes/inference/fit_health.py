@@ -88,12 +88,22 @@ def prior_bound_warnings(model, draws):
                 fix = ("check the stated value and sigma behind it in the bundle's test.toml"
                        if p.name in FROM_BUNDLE or p.name.endswith(".start") else
                        f"widen the bound in a priors file (--priors) if {bound:g} is not a physical limit")
+                unit = f" {p.unit}" if getattr(p, "unit", "") else ""
                 out.append(warning(
                     "prior_bound",
-                    f"{p.name} is piled against its prior's {side} bound {bound:g} (median {np.median(x):.4g}, "
-                    f"{100 * share:.0f} % of draws within {EDGE_BAND:g} sd of it): the prior, not the data, sets "
-                    f"it; {fix}", p.name))
+                    f"{p.name} is piled against its prior's {side} bound {bound:g}{unit}{_as_coefficient(model, p.name, bound)}"
+                    f" (median {np.median(x):.4g}{unit}, {100 * share:.0f} % of draws within {EDGE_BAND:g} sd of "
+                    f"it): the prior, not the data, sets it; {fix}", p.name))
     return out
+
+
+def _as_coefficient(model, name, bound):
+    """For a drag-area parameter, the bound as the prior file writes it: C_D on the nominal area."""
+    if not name.endswith(".cds_o") or not hasattr(model, "chute_prefix"):
+        return ""
+    prefix = name[:-len(".cds_o")]
+    areas = [a for a, q in zip(model.area_o, model.chute_prefix) if q == prefix]
+    return f", i.e. cd_o = {bound / areas[0]:.3g} on S_o = {areas[0]:.4g} m²" if areas else ""
 
 
 def multiplier_warnings(draws):
