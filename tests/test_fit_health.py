@@ -58,17 +58,20 @@ def test_error_multipliers_above_two_warn_by_channel():
     assert fit_health.multiplier_warnings({"noise_acc": np.full(100, 1.9)}) == []
 
 
-def _ppc(p_values):
-    return pd.DataFrame({"parachute": "D1", "stage": 1, "statistic": [f"s{i}" for i in range(len(p_values))],
-                         "p_value": p_values})
+def _ppc(p_values, observed=None):
+    n = len(p_values)
+    return pd.DataFrame({"parachute": "D1", "stage": 1, "statistic": [f"s{i}" for i in range(n)],
+                         "p_value": p_values, "observed": observed if observed is not None else np.zeros(n),
+                         "replicated_mean": 0.0, "replicated_q05": -1.645, "replicated_q95": 1.645})
 
 
-def test_ppc_warns_on_one_extreme_statistic_or_more_than_two_flags():
-    calm = [0.5, 0.2, 0.8, 0.995, 0.03]          # one at 0.995: within what a calibrated fit shows
+def test_ppc_warns_on_three_flags_or_one_statistic_far_outside():
+    calm = [0.5, 0.2, 0.8, 0.997, 0.03]          # one beyond 0.995: what a calibrated fit shows
     assert fit_health.ppc_warnings(_ppc(calm)) == []
-    assert fit_health.ppc_warnings(_ppc([0.5, 0.0002]))[0]["code"] == "ppc"
-    assert fit_health.ppc_warnings(_ppc([0.5, 0.008, 0.995, 0.003]))[0]["code"] == "ppc"
-    assert fit_health.ppc_warnings(_ppc([0.5, 0.008, 0.995])) == []
+    assert fit_health.ppc_warnings(_ppc([0.5, 0.0, 0.4], observed=[0.0, 2.2, 0.0])) == []   # a clean Main's p = 0
+    assert fit_health.ppc_warnings(_ppc([0.5, 0.0, 0.4], observed=[0.0, 7.5, 0.0]))[0]["code"] == "ppc"
+    assert fit_health.ppc_warnings(_ppc([0.5, 0.004, 0.997, 0.003]))[0]["code"] == "ppc"
+    assert fit_health.ppc_warnings(_ppc([0.5, 0.004, 0.997])) == []
 
 
 def test_a_peak_after_the_data_end_warns_naming_the_stage():

@@ -15,10 +15,12 @@ has none. The checks and their thresholds:
     more than twice the stated 1-sigma, so either the sigmas or the model are
     wrong, and every interval of the fit is too narrow or too wide with them.
 ``ppc``
-    A posterior-predictive statistic with p < 0.001 or p > 0.999 (a clean
-    fit's 30–60 statistics land there in well under 5 % of tests; posterior
-    predictive p-values crowd towards ½), or more than two with p < 0.01 or
-    p > 0.99. Needs the fit's checks.
+    More than two posterior-predictive statistics with p < 0.005 or p > 0.995
+    (the diagnosis' adequacy rule: three or more land there in 0.4–2 % of
+    clean tests, while a single one at p = 0 occurs in clean Mains, where a
+    threshold-crossing statistic such as a fill time has a narrow, discrete
+    replicated range), or one observed statistic more than 5 replicated sd
+    (from the 5–95 % range) from the replicated mean. Needs the fit's checks.
 ``after_data_end``
     A stage's predicted peak (start + t_fp) or the end of its decay
     (+ t_k), posterior median, after the last data sample: the data cannot
@@ -43,9 +45,10 @@ EDGE_SHARE = 0.05          # share of draws within EDGE_BAND posterior sd of a b
 EDGE_BAND = 0.25
 INFORMATIVE = 0.5          # posterior sd below this share of the prior sd: the data decide
 MAX_MULTIPLIER = 2.0
-PPC_EXTREME = 0.001        # one statistic beyond this (two-sided) is a warning
-PPC_FLAG = 0.01            # ... or more than PPC_MAX_FLAGS beyond this
+PPC_FLAG = 0.005           # more than PPC_MAX_FLAGS statistics beyond this (two-sided) is a warning
 PPC_MAX_FLAGS = 2
+PPC_MAX_Z = 5.0            # ... or one statistic this many replicated sd from the replicated mean
+_SD_PER_90 = 3.29          # width of a normal's 5-95 % range in sd
 RHAT_MAX = 1.01
 ESS_MIN = 400
 # Bounds that are physics, not a prior's choice: a posterior against them is a finding about the
@@ -124,9 +127,16 @@ def ppc_warnings(ppc_table):
     p = np.asarray(ppc_table["p_value"], float)
     two_sided = np.minimum(p, 1.0 - p)
     ok = np.isfinite(two_sided)
-    extreme = ok & (two_sided < PPC_EXTREME)
     flagged = ok & (two_sided < PPC_FLAG)
-    if not extreme.any() and flagged.sum() <= PPC_MAX_FLAGS:
+    z = np.zeros(len(p))
+    if {"observed", "replicated_mean", "replicated_q05", "replicated_q95"} <= set(ppc_table.columns):
+        sd = (np.asarray(ppc_table["replicated_q95"], float) - np.asarray(ppc_table["replicated_q05"], float))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.abs(np.asarray(ppc_table["observed"], float) - np.asarray(ppc_table["replicated_mean"], float)) \
+                / (sd / _SD_PER_90)
+        z = np.where(np.isfinite(z), z, 0.0)
+    far = flagged & (z > PPC_MAX_Z)
+    if not far.any() and flagged.sum() <= PPC_MAX_FLAGS:
         return []
     rows = ppc_table[flagged]
     names = ", ".join(f"{r['statistic']} of {r['parachute']} stage {r['stage']} (p = {r['p_value']:.3f})"
