@@ -26,8 +26,9 @@ has none. The checks and their thresholds:
     (+ t_k), posterior median, after the last data sample: the data cannot
     see it, so its fill parameters are the prior's guess.
 ``convergence``
-    R-hat above 1.01 or bulk ESS below 400 for some parameter, or an
-    ensemble that did not meet its stopping rule.
+    R-hat above 1.01 or bulk ESS below 400 for some parameter (an ensemble
+    stopped at its step limit is not itself a warning: R-hat and ESS say
+    whether its draws suffice).
 ``sample_rate``
     A stage whose time to peak (t_fp, posterior median) spans fewer than
     MIN_SAMPLES_PER_FILL samples of the record: a slow logger's samples may
@@ -200,10 +201,7 @@ def convergence_warnings(diagnostics):
         out.append(warning("convergence", f"bulk ESS below {ESS_MIN} for {', '.join(low_ess[:4])}"
                            + (f" and {len(low_ess) - 4} more" if len(low_ess) > 4 else "")
                            + ": too few independent draws for its intervals", low_ess[0]))
-    if not all(diagnostics.get("ensembles_converged", [True])) and not bad_rhat and not low_ess:
-        out.append(warning("convergence", "an ensemble stopped at its step limit before its stopping rule "
-                           "was met"))
-    return out
+    return out   # an ensemble at its step limit with R-hat and ESS on target has what its intervals need
 
 
 def fit_warnings(model, tree, diagnostics, ppc_table=None):
