@@ -109,7 +109,7 @@ def test_a_campaign_runs_reruns_in_seconds_and_grows_by_one_fit(tmp_path):
     md = (out / "report.md").read_text()
     html = (out / "index.html").read_text()
     for section in ("## Diagnoses", "## Model memo", "## Monte Carlo per configuration", "## Load comparisons",
-                    "## Convergence of the fits"):
+                    "## Convergence and health of the fits"):
         assert section in md
     images = [line.split("](")[1].rstrip(")") for line in md.splitlines() if line.startswith("![")]
     assert len(images) >= 3 * 8
