@@ -10,14 +10,14 @@ from cpas_bayes.inference.fit import prepare_model
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.synth import synthesize, truth_parameter_values
 
-NEUTRAL = {"k_a": 0.0, "load_scale_change": 0.0, "lag": 0.0, "breathing_amplitude": 0.0,
+NEUTRAL = {"k_a": 0.0, "mass_exponent": 1.5, "mass_lag": 0.0, "load_scale_change": 0.0, "lag": 0.0, "breathing_amplitude": 0.0,
            "breathing_frequency": 1.0, "breathing_damping": 0.2}
 
 
 def _true_extension_values(effect, params):
     """The simulator's effect parameters in the extension's terms."""
     if effect == "added_mass":
-        return {"k_a": params["k_a"]}
+        return {"k_a": params["k_a"], "mass_exponent": params.get("exponent", 1.5), "mass_lag": params.get("lag", 0.0)}
     if effect == "friction_drift":
         return {"load_scale_change": params["scale_end"] - params["scale_start"],
                 "load_scale": 0.5 * (params["scale_end"] + params["scale_start"])}
@@ -90,6 +90,27 @@ def test_each_extension_explains_its_own_effect_and_no_other(scenario, effect):
         gains[name] = model.log_likelihood(theta)[0] - baseline
     assert gains[effect] > 500, gains
     assert all(gains[effect] > 20 * max(abs(g), 1.0) for n, g in gains.items() if n != effect), gains
+
+
+@pytest.mark.parametrize("scenario", ["drogue", "main"])
+def test_the_added_mass_term_fits_a_lagged_mass_of_another_exponent(scenario):
+    """On a simulated added mass of another form (exponent p, lag τ_m, Eq. A1' and A5), the term at the
+    simulator's p and τ_m reproduces it far better than Eq. A1's form with the same k_a."""
+    test, truth_doc = synthesize(scenario, "added_mass_form", 11)
+    params = truth_doc["effect_params"]
+    assert params["mass_lag"] > 0.04 and abs(params["exponent"] - 1.5) > 0.02, params
+    reduction = reduce_test(test)
+    truth = truth_parameter_values(test, truth_doc)
+    base = prepare_model(test, reduction)
+    baseline = base.log_likelihood(np.array([truth.get(n, 1.0) for n in base.names])[None])[0]
+    model = prepare_model(test, reduction, extensions=[make_extension("added_mass")])
+    gains = {}
+    for label, form in (("true form", {"mass_exponent": params["exponent"], "mass_lag": params["mass_lag"]}),
+                        ("Eq. A1", {"mass_exponent": 1.5, "mass_lag": 0.0})):
+        values = {**truth, **NEUTRAL, "k_a": params["k_a"], **form}
+        gains[label] = model.log_likelihood(np.array([values.get(n, 1.0) for n in model.names])[None])[0] - baseline
+    assert gains["true form"] > 1000, gains
+    assert gains["true form"] > gains["Eq. A1"] + 3000, gains
 
 
 def test_unknown_extension_is_refused():

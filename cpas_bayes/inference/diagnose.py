@@ -12,11 +12,14 @@ Procedure (``diagnose_test``)
    structure there is to explain, its fitted shape where (channel, phase, time).
 3. **Name, forward.** For each catalogued term T that applies to the test's
    channels (:mod:`cpas_bayes.stats.model_terms`) find the MAP of named + T +
-   discrepancy from the reference's; sample it when the MAP log posterior
+   discrepancy from the reference's MAP and from the baseline's with the
+   discrepancy off (where the term, not the discrepancy, takes the misfit
+   first); sample it when the MAP log posterior
    rises by > 5 (mode ``screen``: also with T's size beyond its floor) — the
    MAP gain bounds the elpd gain from above, so a term that cannot raise the
    best fit cannot predict held-out bins better) and judge T against
-   named + discrepancy (:mod:`cpas_bayes.inference.diagnosis_rule`); name the
+   named + discrepancy (:mod:`cpas_bayes.inference.diagnosis_rule`), refitting
+   once with 3× the steps a term that gains and fails only on convergence; name the
    best passing term, add it to the reference and try the others again,
    until none passes.
 4. **Unexplained?** Fit the named terms without the discrepancy: the
@@ -34,7 +37,7 @@ Procedure (``diagnose_test``)
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -55,6 +58,7 @@ from cpas_bayes.stats.model_terms import PHYSICAL, applies
 
 BAND = 0.90                 # data coverage band of the gain table
 FORM_MARGIN = 4.0           # elpd: a model form wins clearly beyond 2 se and this (a likelihood ratio of e⁴)
+RETRY_STEPS_FACTOR = 3      # a gaining but unconverged candidate is refitted with this many times the steps
 
 
 @dataclass
@@ -391,9 +395,25 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
         fitted = dict(zip(to_fit, _run_fits(executor, jobs, say, test.name)))
         fits.update({labels[t]: f for t, f in fitted.items()})
         reference_energy = discrepancy_energy(reference)
-        checks = [check_term(t, fitted[t], reference, options, misfit=misfit,
-                             share=1.0 - discrepancy_energy(fitted[t]) / reference_energy if reference_energy > 0
-                             else None) for t in to_fit]
+
+        def judge(t):
+            share = 1.0 - discrepancy_energy(fitted[t]) / reference_energy if reference_energy > 0 else None
+            return check_term(t, fitted[t], reference, options, misfit=misfit, share=share)
+
+        checks = [judge(t) for t in to_fit]
+        # A term that gains, and fails only on convergence, gets one longer fit from its MAP: the
+        # form parameters of a term (an added mass's lag) can need more steps than the diagnosis' budget.
+        retry = [c.term for c in checks
+                 if c.gains and not c.converged and not (c.below_floor or c.at_edge or c.size_repeats_prior)]
+        if retry:
+            longer = replace(options, sampler=replace(options.sampler,
+                                                      max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR))
+            say(f"{test.name}: {', '.join(retry)} gained but did not converge: a fit {RETRY_STEPS_FACTOR}× longer")
+            jobs = [(labels[t], test, reduction, longer, reference, baseline, [fitted[t].fit.sampling.theta_map])
+                    for t in retry]
+            fitted.update(zip(retry, _run_fits(executor, jobs, say, test.name)))
+            fits.update({labels[t]: fitted[t] for t in retry})
+            checks = [judge(t) for t in to_fit]
         chosen, clear, reasons = choose_term(checks, {f.name: f for f in fitted.values()}, options)
         if trial is not None:
             earlier, rival = trial

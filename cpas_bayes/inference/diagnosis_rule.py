@@ -27,7 +27,8 @@ T may be named when
 * no parameter of T sits at the edge of its prior: the posterior's 5 % or
   95 % quantile beyond the prior's 0.5 % or 99.5 % point (a stand-in that
   would go further if allowed), except the size parameter's lower side,
-  which the floor covers;
+  which the floor covers, and a lower bound that is a physical limit
+  (``Extension.physical_lower_limits``: an added-mass lag of 0);
 * its size parameter does not repeat its prior (posterior variance < 90 % of
   the prior's): otherwise the data did not inform it;
 * it leads every other passing term clearly: by > ``min_margin_se`` (2) se of
@@ -179,7 +180,8 @@ def parameter_health(candidate: CandidateFit, term: str, rng=None):
     """Per parameter of ``term``: posterior quantiles, edge-of-prior side (or None), prior contraction."""
     rng = rng if rng is not None else np.random.default_rng(0)
     model, post = candidate.fit.model, candidate.fit.tree["posterior"]
-    floor = make_extension(term).practical_floor
+    extension = make_extension(term)
+    floor = extension.practical_floor
     size_name = floor[0] if floor else None
     out = {}
     for p in model.parameters:
@@ -190,7 +192,8 @@ def parameter_health(candidate: CandidateFit, term: str, rng=None):
         edge = None
         if float(p.prior.cdf(q95)) > 1 - EDGE_QUANTILE:
             edge = "upper"
-        elif float(p.prior.cdf(q05)) < EDGE_QUANTILE and p.name != size_name:
+        elif (float(p.prior.cdf(q05)) < EDGE_QUANTILE and p.name != size_name
+              and p.name not in extension.physical_lower_limits):
             edge = "lower"
         prior_var = _prior_variance(p.prior, rng)
         ratio = float(np.var(x) / prior_var) if prior_var > 0 else 0.0

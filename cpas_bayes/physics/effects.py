@@ -1,6 +1,6 @@
 """Physical and sensor effects beyond the seed's reduction equations.
 
-Pure numpy functions, each broadcasting over leading batch axes (runs,
+Pure functions (numpy, and one numba loop for a lag), each broadcasting over leading batch axes (runs,
 walkers, parachutes) with time last where there is a time axis. The simulator
 (:mod:`cpas_bayes.physics.trajectory`), the synthetic-test generator
 (:mod:`cpas_bayes.data.synth`) and the model extensions that fit these effects all
@@ -76,6 +76,7 @@ multiplying the load-cell reading (ω = 2π·f).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 ADDED_MASS_EXPONENT = 1.5  # volume ∝ (area)^(3/2)
@@ -90,7 +91,7 @@ def added_mass(cds, density, k_a, exponent=ADDED_MASS_EXPONENT, reference_cds=No
     ``reference_cds`` (CDS_o, m², required then).
     """
     cds = np.clip(np.asarray(cds, float), 0.0, None)
-    if exponent == ADDED_MASS_EXPONENT:
+    if np.ndim(exponent) == 0 and exponent == ADDED_MASS_EXPONENT:
         return np.asarray(k_a, float) * np.asarray(density, float) * cds**ADDED_MASS_EXPONENT
     reference = _reference_area(reference_cds)
     return (np.asarray(k_a, float) * np.asarray(density, float) * reference**ADDED_MASS_EXPONENT
@@ -101,7 +102,7 @@ def added_mass_rate(cds, cds_rate, density, density_rate, k_a, exponent=ADDED_MA
     """dm_a/dt of Eq. A1: k_a·(ρ̇·CDS^(3/2) + (3/2)·ρ·CDS^(1/2)·dCDS/dt), kg/s (A1' for another exponent)."""
     cds = np.clip(np.asarray(cds, float), 0.0, None)
     k_a = np.asarray(k_a, float)
-    if exponent == ADDED_MASS_EXPONENT:
+    if np.ndim(exponent) == 0 and exponent == ADDED_MASS_EXPONENT:
         return k_a * (np.asarray(density_rate, float) * cds**ADDED_MASS_EXPONENT
                       + ADDED_MASS_EXPONENT * np.asarray(density, float) * np.sqrt(cds)
                       * np.asarray(cds_rate, float))
@@ -119,6 +120,46 @@ def _reference_area(reference_cds):
     if np.any(reference <= 0):
         raise ValueError("reference_cds must be positive")
     return reference
+
+
+def lagged_mass_rate(target_rate, t, lag):
+    """Eq. A5: the lag error over τ_m, g (kg/s), of a mass following its target through a first-order lag.
+
+    ``target_rate`` ṁ_a,A1' (B, P, N) on the increasing times ``t`` (N,) or
+    (B or 1, 1, N); ``lag`` τ_m ≥ 0 (B,) in s. Returns g (B, P, N): the
+    lagged mass is target + τ_m·g and its rate −g. The record starts in
+    steady state (g = −ṁ at the first time).
+    """
+    rate = np.ascontiguousarray(target_rate, float)
+    times = np.asarray(t, float)
+    times = np.ascontiguousarray(times.reshape(-1, times.shape[-1]))
+    lag = np.ascontiguousarray(np.broadcast_to(np.asarray(lag, float), rate.shape[:1]))
+    if np.any(lag < 0):
+        raise ValueError("the added-mass lag must be ≥ 0")
+    return _lag_error(rate, times, lag)
+
+
+@numba.njit(cache=True)
+def _lag_error(rate, times, lag):
+    n_rows, n_chutes, n_times = rate.shape
+    out = np.empty_like(rate)
+    for b in range(n_rows):
+        t = times[b if times.shape[0] > 1 else 0]
+        tau = lag[b]
+        for i in range(n_chutes):
+            g = -rate[b, i, 0]
+            out[b, i, 0] = g
+            for n in range(1, n_times):
+                if tau <= 0.0:
+                    g = -rate[b, i, n]
+                else:
+                    step = t[n] - t[n - 1]
+                    one_minus_a = -np.expm1(-step / tau)
+                    c = tau / step * one_minus_a
+                    g = ((1.0 - one_minus_a) * g - rate[b, i, n - 1] * one_minus_a
+                         - (rate[b, i, n] - rate[b, i, n - 1]) * (1.0 - c))
+                out[b, i, n] = g
+    return out
 
 
 def added_mass_momentum_rate(mass, mass_rate, airspeed, acceleration):

@@ -59,6 +59,7 @@ class Extension:
     # (parameter, size): a fitted |median| below size is practically no effect (a region of
     # practical equivalence around the neutral value); None for terms without a physical size.
     practical_floor = None
+    physical_lower_limits = ()    # parameters whose prior's lower bound is a physical limit (a lag of 0), not an edge
     needs_load_cells = False      # a term acting on load cells only does not apply without them
 
     def parameters(self, model):

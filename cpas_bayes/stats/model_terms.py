@@ -6,12 +6,20 @@ baseline is never copied. The physics is the same as the simulator's
 (:mod:`cpas_bayes.physics.effects`), so a fitted term means what a simulated one did.
 
 ``added_mass`` — enclosed + apparent air mass (both channels)
-    m_a,i = k_a·ρ·CDS_i^(3/2); both reduction channels then show
-    CDS_i + d(m_a,i·V)/dt / q̄ with d(m_a·V)/dt = ṁ_a·V + m_a·dV/dt
-    (effects Eq. A1–A4). V is the measured (smoothed) airspeed; dV/dt comes
-    from the momentum balance Eq. A3 with the model's drag areas and added
-    mass; dCDS_i/dt is differenced from the stage law. Prior: k_a
-    lognormal, median 0.3, factor-e spread, 0.005–5.
+    m_a,i = k_a·ρ·CDS_o,i^(3/2)·(CDS_i/CDS_o,i)^p reached through a
+    first-order lag τ_m (effects Eq. A1', A5); both reduction channels then
+    show CDS_i + d(m_a,i·V)/dt / q̄ with d(m_a·V)/dt = ṁ_a·V + m_a·dV/dt
+    (Eq. A1–A4). p = 3/2 and τ_m = 0 is Eq. A1. The form parameters are fitted
+    because the cause is physical but its form is not known: a filling
+    canopy is not geometrically similar to the open one (p), and the flow
+    that carries the air takes a moment to establish (τ_m); a term of one
+    fixed form lost to the generic discrepancy on an added mass with a lag
+    of 0.1 s. V is the measured (smoothed) airspeed; dV/dt comes from the
+    momentum balance Eq. A3 with the model's drag areas and added mass;
+    dCDS_i/dt is differenced from the stage law. Priors: k_a lognormal,
+    median 0.3, factor-e spread, 0.005–5; p ~ N(1.5, 0.25) on [1, 2.25];
+    τ_m ~ half-normal, scale 0.25 s, below 1 s (τ_m = 0 is a physical
+    limit, not an edge of the prior).
 
 ``friction_drift`` — load-cell friction factor changing in time (load cells only)
     s(t) = s + Δs·(clip((t − t_a)/(t_b − t_a), 0, 1) − ½), t_a the first
@@ -48,7 +56,7 @@ import math
 import numpy as np
 
 from cpas_bayes.physics.effects import (added_mass, added_mass_acceleration, added_mass_momentum_rate, added_mass_rate,
-                      breathing_factor)
+                                        breathing_factor, lagged_mass_rate)
 from cpas_bayes.stats.discrepancy import Discrepancy
 from cpas_bayes.stats.model_parts import Extension, Parameter
 from cpas_bayes.stats.distributions import LogNormal, Normal, TruncNormal, Uniform
@@ -61,31 +69,44 @@ _DERIVATIVE_STEP = 1e-3  # s, central difference of the stage law
 class AddedMass(Extension):
     name = "added_mass"
     practical_floor = ("k_a", 0.05)   # below: < 1/4 of the smallest added mass the Drogue tests suggest
+    physical_lower_limits = ("mass_lag",)
 
     def parameters(self, model):
         obs = model.obs
         self._density_rate = np.gradient(obs.native_density, obs.native_time)
-        return [Parameter("k_a", LogNormal(0.3, 1.0, 0.005, 5.0), "", self.name)]
+        return [Parameter("k_a", LogNormal(0.3, 1.0, 0.005, 5.0), "", self.name),
+                Parameter("mass_exponent", TruncNormal(1.5, 0.25, 1.0, 2.25), "", self.name),
+                Parameter("mass_lag", TruncNormal(0.0, 0.25, 0.0, 1.0), "s", self.name)]
 
     def start_points(self, model):
-        return [{"k_a": 0.02}, {"k_a": 0.5}]   # nearly absent, and a typical Drogue value
+        # nearly absent; a typical Drogue value at once; the same value behind a lag
+        return [{"k_a": 0.02, "mass_exponent": 1.5, "mass_lag": 0.02},
+                {"k_a": 0.5, "mass_exponent": 1.5, "mass_lag": 0.02},
+                {"k_a": 0.5, "mass_exponent": 1.5, "mass_lag": 0.12}]
 
     def apparent_drag_area(self, ctx, t):
         model, obs = ctx.model, ctx.model.obs
-        k_a = ctx.values["k_a"][:, None, None]
+        v = ctx.values
+        k_a = v["k_a"][:, None, None]
+        exponent = v["mass_exponent"][:, None, None]
+        cds_o = ctx.stage["cds_o"][:, :, None]
         tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]      # (1 or B, 1, N)
         cds_plus, _ = model.drag_areas(ctx.stage, tt + _DERIVATIVE_STEP)
         cds_minus, _ = model.drag_areas(ctx.stage, tt - _DERIVATIVE_STEP)
         cds = 0.5 * (cds_plus + cds_minus)
         cds_rate = (cds_plus - cds_minus) / (2 * _DERIVATIVE_STEP)
         rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
-        mass = added_mass(cds, rho, k_a)
-        rate = added_mass_rate(cds, cds_rate, rho, np.interp(tt, obs.native_time, self._density_rate), k_a)
+        target = added_mass(cds, rho, k_a, exponent, cds_o)
+        target_rate = added_mass_rate(cds, cds_rate, rho, np.interp(tt, obs.native_time, self._density_rate),
+                                      k_a, exponent, cds_o)
+        lag_error = lagged_mass_rate(target_rate, tt, v["mass_lag"])
+        mass = target + v["mass_lag"][:, None, None] * lag_error
+        rate = -lag_error
         # dV/dt from the system's momentum balance (effects Eq. A3) with the model's own
         # drag areas: differencing the measured airspeed would turn its noise into
         # m_a·dV/dt errors far larger than the effect on a Main.
-        total_weight = (ctx.values["vehicle_weight"] + model.chute_weight.sum())[:, None]
-        accel = added_mass_acceleration(qbar[:, 0], cds.sum(axis=1), ctx.values["vehicle_cds"][:, None],
+        total_weight = (v["vehicle_weight"] + model.chute_weight.sum())[:, None]
+        accel = added_mass_acceleration(qbar[:, 0], cds.sum(axis=1), v["vehicle_cds"][:, None],
                                         total_weight, obs.gamma_at(tt)[:, 0], speed[:, 0], mass.sum(axis=1),
                                         rate.sum(axis=1), STANDARD_GRAVITY)
         return added_mass_momentum_rate(mass, rate, speed, accel[:, None, :]) / qbar
