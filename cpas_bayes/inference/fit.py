@@ -42,6 +42,7 @@ from __future__ import annotations
 import hashlib
 import json
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -336,12 +337,14 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
                  for e in range(options.n_ensembles)]
         ckpts = [Path(checkpoint_dir) / f"ensemble_{e}.h5" if checkpoint_dir else None
                  for e in range(options.n_ensembles)]
+        started = time.perf_counter()
         runs, stopping = run_ensembles(model, inits, seeds, options, ckpts, executor)
+        seconds = time.perf_counter() - started
     finally:
         if own:
             executor.close()
     return SamplingResult(names=list(model.names), runs=runs, theta_map=theta_map, log_post_map=float(lp_map),
-                          options=options, extras={"stopping": stopping} if stopping else {})
+                          options=options, extras={"stopping": stopping, "sampling_seconds": seconds})
 
 
 def run_ensembles(model, inits, seeds, options: SamplerOptions, checkpoints=None, executor=None):
