@@ -56,6 +56,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--ess-target", type=int, default=ESS_TARGET)
+    parser.add_argument("--rules", nargs="+", default=["tau", "ess"], choices=["tau", "ess"])
     parser.add_argument("--out", type=Path, default=Path(__file__).with_name("stopping.md"))
     args = parser.parse_args()
     rows, widths = [], []
@@ -64,7 +65,7 @@ def main():
         model = prepare_model(test, reduce_test(test))
         keys = key_parameters(model.names, model.parachutes[0].id)
         results = {}
-        for stop in ("tau", "ess"):
+        for stop in args.rules:
             options = SamplerOptions(seed=0, workers=args.workers, progress=False, stop=stop,
                                      ess_target=args.ess_target)
             r = results[stop] = measure(model, options)
@@ -72,7 +73,7 @@ def main():
                         f"{r['tau']:.0f} | {r['bulk']:,.0f} | {r['tail']:,.0f} | {r['rhat']:.4f} | {r['check']:.2f} | "
                         f"{r['draws']:,} |")
             print(rows[-1], flush=True)
-        for k in keys:
+        for k in keys if len(results) == 2 else ():
             a, b = results["tau"]["widths"][k], results["ess"]["widths"][k]
             widths.append(f"| {path.name} | {k} | {a:.4g} | {b:.4g} | {100 * (b / a - 1):+.1f} % |")
     text = "\n".join([

@@ -25,8 +25,8 @@ Procedure
    ensemble and chunk, so the workers stay busy) and stop when every
    parameter's rank-normalised bulk and tail ESS reach ``ess_target`` and its
    nested R-hat over ensembles is at most ``rhat_target`` on the draws the fit
-   keeps (burn-in half the chain, thin = ½·min τ); τ is still computed and
-   reported. The chain of an ensemble does not depend on the rule, only its
+   keeps (burn-in half the chain, thin = ½·min τ), and τ has settled (moved
+   less than ``tau_rtol`` since the last chunk); τ is reported. The chain of an ensemble does not depend on the rule, only its
    length: a chunk continues from the last state and random state either way.
 5. Checkpoints: every chunk is appended to an emcee HDF5 backend (by the worker
    under the τ rule, by the main process under the ESS rule); the file is
@@ -398,7 +398,7 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
         for ckpt in ckpts:
             held.enter_context(exclusive_writer(ckpt or None))
         stores = [_EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
-        end = 0
+        end, tau_prev = 0, None
         while True:
             end += per_chunk
             behind = [st for st in stores if st.stored < end]
@@ -406,7 +406,9 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
             for st, piece in zip(behind, executor.map(_chunk_task, jobs, desc="chunk", progress=False)):
                 st.append(*piece)
             chains = [st.sampler.backend.get_chain()[:end] for st in stores]
-            check = ess_check(chains, options.store_every, options.ess_target, options.rhat_target)
+            check = ess_check(chains, options.store_every, options.ess_target, options.rhat_target, tau_prev,
+                              options.tau_rtol)
+            tau_prev = check.taus
             steps = end * options.store_every
             for label, tau in zip(labels, check.taus) if bars else ():
                 bars.update(label, steps, float(np.max(tau)), check.met)
