@@ -33,8 +33,11 @@ its first chunk (500 steps, τ̂ = 48 steps against 180 at 9,000): the walkers
 were still spreading from the start, every ensemble alike, so R-hat was 1.008,
 and the 90 % intervals came out 7–11 % wider than the τ rule's. A τ̂ that
 still grows is that transient's sign, so the ESS rule also asks what the τ
-rule asks of τ (changed by less than ``tau_rtol``, 5 %, since the previous
-check), though not the 50 τ length.
+rule asks of τ, for the largest τ over ensembles and parameters (changed by
+less than ``tau_rtol``, 5 %, since the previous check), though not the 50 τ
+length. (Asking it of every parameter of every ensemble, as the τ rule does
+per ensemble, ran the drogue example to 7,000 steps, past the τ rule's 5,500:
+one of 4·29 noisy estimates always moves by 5 %.)
 
 The statistics are computed on exactly those draws, as the fit's summary
 (:func:`cpas_bayes.inference.fit_folder.convergence`) computes them, so a fit
@@ -169,12 +172,15 @@ def ess_check(chains, store_every, ess_target=ESS_TARGET, rhat_target=RHAT_TARGE
 
     τ, burn-in and thinning per ensemble as the fit keeps its draws; then the pooled statistics
     (:func:`chain_statistics`) of the kept draws against the targets. The targets count only once every
-    ensemble's τ has settled: |τ − τ_prev| < ``tau_rtol``·τ for every parameter, ``tau_prev`` being the τ
-    of the previous check (None: not settled). See the module's docstring for why.
+    ensemble's τ has settled: |max τ − max τ_prev| < ``tau_rtol``·max τ (max over ensembles and parameters),
+    ``tau_prev`` being the τ of the previous check (None: not settled). See the module's docstring for why.
     """
     taus = [integrated_time(c, store_every) for c in chains]
     burn_thin = [burn_and_thin(t, store_every, c.shape[0]) for t, c in zip(taus, chains)]
-    settled = tau_prev is not None and all(np.all(np.abs(t - p) < tau_rtol * t) for t, p in zip(taus, tau_prev))
+    # the largest τ of all ensembles and parameters: a per-parameter test over E·D noisy estimates almost
+    # never passes at once (measured: it ran the drogue example past the τ rule's length)
+    tau_max = max(float(np.max(t)) for t in taus)
+    settled = tau_prev is not None and abs(tau_max - max(float(np.max(p)) for p in tau_prev)) < tau_rtol * tau_max
     kept = [c[b::t] for c, (b, t) in zip(chains, burn_thin)]
     if min(k.shape[0] for k in kept) < 4:     # split R-hat needs at least two draws per half
         return EssCheck(taus, burn_thin, None, False)
