@@ -27,8 +27,9 @@ from cpas_bayes.core.errors import InputError
 from cpas_bayes.app.campaign_config import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
 from cpas_bayes.app.cli_runtime import on_interrupt, run_cli
 from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
-from cpas_bayes.app.options import (BATCH, ENSEMBLES, RUNS, SEED, WORKERS, check_scheduler, out_option,
-                                    priors_option, seed_option)
+from cpas_bayes.inference.stopping import ESS_TARGET
+from cpas_bayes.app.options import (BATCH, ENSEMBLES, ESS_TARGETS, RUNS, SEED, STOP, WORKERS, check_scheduler,
+                                    out_option, priors_option, seed_option, stop_problem)
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
@@ -233,7 +234,13 @@ def synth_command(scenario, effect, magnitude, seed, out):
 @parallel_options(what="ensembles")
 @click.option("--ensembles", type=ENSEMBLES, default=4, show_default=True,
               help="Independent emcee ensembles (R-hat).")
-def fit_command(bundle, out, seed, priors, decay, below_previous, workers, scheduler, ensembles):
+@click.option("--stop", type=STOP, default="tau", show_default=True,
+              help="When sampling stops: 'tau' when each ensemble is longer than 50 autocorrelation times; 'ess' "
+                   "when every parameter's bulk and tail ESS reach --ess-target and R-hat across ensembles is "
+                   "at most 1.01.")
+@click.option("--ess-target", type=ESS_TARGETS, default=None,
+              help=f"With --stop ess: the bulk and tail ESS every parameter needs [default: {ESS_TARGET}].")
+def fit_command(bundle, out, seed, priors, decay, below_previous, workers, scheduler, ensembles, stop, ess_target):
     """Posterior of every inflation parameter of one flight test (emcee).
 
     Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
@@ -246,9 +253,13 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.inference.predictive_checks import run_checks
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
+    problem = stop_problem(stop, ess_target, ensembles)
+    if problem:
+        raise click.BadParameter(problem[1], param_hint=problem[0])
     test = read_bundle(bundle)
     _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
-    options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles)
+    options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
+                             ess_target=ess_target or ESS_TARGET)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}, "
                f"stage below previous: {below_previous}")
     model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous)
@@ -261,7 +272,8 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     figures = write_fit_figures(fit, out, checks=checks)
     d = fit.summary["diagnostics"]
     click.echo(f"{'converged' if d['converged'] else 'NOT converged'}: R-hat max {d['rhat_max']:.4f}, "
-               f"ESS bulk min {d['ess_bulk_min']:.0f}, tau max {d['tau_max']:.0f} steps, "
+               f"ESS bulk min {d['ess_bulk_min']:.0f}, tail min {d['ess_tail_min']:.0f}, tau max "
+               f"{d['tau_max']:.0f} steps, {max(d['steps'])} steps per ensemble (stop rule {stop}), "
                f"acceptance {d['acceptance']:.2f}")
     click.echo(fill_time_table(fit.summary))
     for w in warnings:

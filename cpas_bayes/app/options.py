@@ -17,6 +17,10 @@ option             allowed                     why
 ``--batch``        1 … 100,000                 runs simulated at once
 ``--magnitude``    finite, within the effect's :data:`cpas_bayes.data.synth.EFFECT_MAGNITUDE_LIMITS`
                    limits
+``--stop``         ``tau`` or ``ess``          :mod:`cpas_bayes.inference.stopping`; ``ess`` needs 2 or more
+                                               ensembles: its R-hat compares ensembles
+``--ess-target``   100 … 100,000, with         below 100 neither ESS nor R-hat estimates are reliable
+                   ``--stop ess`` only         (fit health warns below 400); 100,000 is 100× the default
 ``--scheduler``    ``local`` or an address     the scheduler must answer within 5 s
                    that answers
 ``--priors``       an existing TOML file       read within :func:`cpas_bayes.core.inputs.read_toml`'s limits
@@ -35,6 +39,7 @@ from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.executor import MAX_LOCAL_WORKERS, SCHEDULER_FIX, scheduler_problem
 from cpas_bayes.core.inputs import read_toml
 from cpas_bayes.core.ownership import check_output
+from cpas_bayes.inference.stopping import STOP_RULES
 from cpas_bayes.loads.budget import MAX_BATCH, MAX_RUNS
 
 MAX_SEED = 2**63 - 1
@@ -45,6 +50,17 @@ WORKERS = click.IntRange(1, MAX_LOCAL_WORKERS)
 ENSEMBLES = click.IntRange(1, MAX_ENSEMBLES)
 RUNS = click.IntRange(1, MAX_RUNS)
 BATCH = click.IntRange(1, MAX_BATCH)
+STOP = click.Choice(STOP_RULES)
+ESS_TARGETS = click.IntRange(100, 100_000)
+
+
+def stop_problem(stop, ess_target, ensembles):
+    """(option, why) when ``--stop``, ``--ess-target`` and ``--ensembles`` do not go together, else None."""
+    if ess_target is not None and stop != "ess":
+        return "--ess-target", "a target of effective sample size applies only with --stop ess"
+    if stop == "ess" and ensembles < 2:
+        return "--ensembles", "--stop ess needs 2 or more ensembles: its R-hat compares them"
+    return None
 
 
 def check_scheduler(ctx, param, value):

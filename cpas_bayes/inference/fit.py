@@ -17,14 +17,24 @@ Procedure
    the ensemble's seed; numpy's global generator is never touched). Walkers of
    one ensemble are not independent chains, so R-hat is the nested R-hat over
    ensembles.
-4. Each ensemble runs in chunks until the chain is longer than 50 integrated
-   autocorrelation times τ and τ has changed by less than 5 % since the last
-   chunk; burn-in = 2·max τ, thin = ½·min τ.
-5. Checkpoints: every chunk is appended to an emcee HDF5 backend; the file is
-   copied, extended and renamed back, so a kill at any instant leaves the last
-   complete chunk. A rerun on the same folder resumes from it and, because emcee
-   stores its random state with every step, ends with the same chain as an
-   uninterrupted run.
+4. When to stop (``SamplerOptions.stop``, :mod:`cpas_bayes.inference.stopping`):
+   ``"tau"`` -- each ensemble runs in chunks, as its own task, until its chain
+   is longer than 50 integrated autocorrelation times τ and τ has changed by
+   less than 5 % since the last chunk; burn-in = 2·max τ, thin = ½·min τ.
+   ``"ess"`` -- the ensembles advance in lockstep chunks (one task per
+   ensemble and chunk, so the workers stay busy) and stop when every
+   parameter's rank-normalised bulk and tail ESS reach ``ess_target`` and its
+   nested R-hat over ensembles is at most ``rhat_target`` on the draws the fit
+   keeps (burn-in half the chain, thin = ½·min τ), and τ has settled (moved
+   less than ``tau_rtol`` since the last chunk); τ is reported. The chain of an ensemble does not depend on the rule, only its
+   length: a chunk continues from the last state and random state either way.
+5. Checkpoints: every chunk is appended to an emcee HDF5 backend (by the worker
+   under the τ rule, by the main process under the ESS rule); the file is
+   rewritten and renamed over the old one, so a kill at any instant leaves the
+   last complete chunk. A rerun on the same folder replays the stopping checks
+   on the chunks it holds, resumes from them and, because emcee stores its
+   random state with every step, ends with the same chain as an uninterrupted
+   run, under either rule.
 """
 
 from __future__ import annotations
@@ -32,6 +42,7 @@ from __future__ import annotations
 import hashlib
 import json
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +52,8 @@ import numpy as np
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import atomic_path
 from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
+from cpas_bayes.inference.stopping import (ESS_TARGET, RHAT_TARGET, STOP_RULES, burn_and_thin, ess_check,
+                                           integrated_time)
 from cpas_bayes.stats.model import TestModel
 
 
@@ -54,11 +67,21 @@ class SamplerOptions:
     check_every: int = 500            # steps between convergence checks (and checkpoints)
     max_steps: int = 20000
     store_every: int = 5              # keep every k-th step in the chain file
-    tau_factor: float = 50.0          # converged when steps > tau_factor·τ ...
+    stop: str = "tau"                 # "tau": the τ rule below; "ess": ESS and R-hat targets (module docstring)
+    tau_factor: float = 50.0          # τ rule: converged when steps > tau_factor·τ ...
     tau_rtol: float = 0.05            # ... and τ moved less than this since the last check
+    ess_target: float = ESS_TARGET    # ESS rule: bulk and tail ESS of every parameter at least this ...
+    rhat_target: float = RHAT_TARGET  # ... and its R-hat at most this
     map_starts: int = 4
     workers: int = 2
     progress: bool = True
+
+    def __post_init__(self):
+        if self.stop not in STOP_RULES:
+            raise ValueError(f"stop must be one of {', '.join(STOP_RULES)}, not {self.stop!r}")
+        if not self.ess_target > 0 or not self.rhat_target > 1:
+            raise ValueError(f"ess_target must be positive and rhat_target above 1, not {self.ess_target!r} and "
+                             f"{self.rhat_target!r}")
 
 
 @dataclass
@@ -113,11 +136,6 @@ def _fingerprint(model, init, options):
     h.update(np.ascontiguousarray(init).tobytes())
     h.update(json.dumps([options.seed, options.store_every]).encode())
     return h.hexdigest()[:16]
-
-
-def _autocorr(chain, store_every):
-    """Integrated autocorrelation time (steps) of a stored (S, W, D) chain."""
-    return store_every * emcee.autocorr.integrated_time(chain, tol=0)
 
 
 class _EnsembleStore:
@@ -196,14 +214,40 @@ class _EnsembleStore:
         if self.checkpoint:
             self._save()
         steps = backend.iteration * self.options.store_every
+        return steps, backend.get_chain(), backend.get_log_prob(), self.acceptance()
+
+    def acceptance(self):
+        backend = self.sampler.backend
         # emcee adds one acceptance per stored step, not per thinned-away step
-        acceptance = float(np.mean(backend.accepted) / max(backend.iteration, 1))
-        return steps, backend.get_chain(), backend.get_log_prob(), acceptance
+        return float(np.mean(backend.accepted) / max(backend.iteration, 1))
+
+    @property
+    def stored(self):
+        """Stored steps so far."""
+        return self.sampler.backend.iteration
+
+    def next_state(self):
+        """(walkers, their log posterior or None, emcee's random state): where the next chunk starts."""
+        if self.stored == 0:
+            return self.init, None, np.random.RandomState(self.seed).get_state()
+        last = self.sampler.backend.get_last_sample()
+        return last.coords, last.log_prob, last.random_state
+
+    def append(self, chain, log_prob, accepted, random_state):
+        """Add a chunk run elsewhere (:func:`_chunk_task`) from :meth:`next_state`, and checkpoint."""
+        b = self.sampler.backend
+        b.chain = np.concatenate([b.chain[: b.iteration], chain])
+        b.log_prob = np.concatenate([b.log_prob[: b.iteration], log_prob])
+        b.accepted = b.accepted + accepted
+        b.iteration += chain.shape[0]
+        b.random_state = random_state
+        if self.checkpoint:
+            self._save()
 
 
 def _check(chain, steps, tau_prev, options):
     """The convergence check after a chunk: (τ, converged, stop)."""
-    tau = _autocorr(chain, options.store_every)
+    tau = integrated_time(chain, options.store_every)
     settled = tau_prev is not None and np.all(np.abs(tau - tau_prev) < options.tau_rtol * tau)
     converged = bool(steps > options.tau_factor * np.max(tau) and settled)
     return tau, converged, converged or steps >= options.max_steps
@@ -252,12 +296,15 @@ def run_ensemble(model, init, seed, options: SamplerOptions, checkpoint=None, la
     steps, chain, log_prob, acceptance, tau, converged = stopped
     if report is not None:
         report(label, steps, float(np.max(tau)), converged)
-    burn = int(np.ceil(2 * np.max(tau) / options.store_every))
-    thin = max(1, int(0.5 * np.min(tau) / options.store_every))
-    kept = chain[burn::thin]
-    return EnsembleRun(draws=np.swapaxes(kept, 0, 1), log_prob=log_prob[burn::thin].T, tau=tau, steps=steps,
-                       acceptance=acceptance, converged=converged, burn=burn * options.store_every,
-                       thin=thin * options.store_every)
+    return _ensemble_run(chain, log_prob, tau, burn_and_thin(tau, options.store_every), steps, acceptance,
+                         converged, options.store_every)
+
+
+def _ensemble_run(chain, log_prob, tau, burn_thin, steps, acceptance, converged, store_every):
+    burn, thin = burn_thin
+    return EnsembleRun(draws=np.swapaxes(chain[burn::thin], 0, 1), log_prob=log_prob[burn::thin].T, tau=tau,
+                       steps=steps, acceptance=acceptance, converged=converged, burn=burn * store_every,
+                       thin=thin * store_every)
 
 
 def _ensemble_task(job, report=None):
@@ -290,24 +337,88 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
                  for e in range(options.n_ensembles)]
         ckpts = [Path(checkpoint_dir) / f"ensemble_{e}.h5" if checkpoint_dir else None
                  for e in range(options.n_ensembles)]
-        runs = _run_all(model, inits, seeds, ckpts, options, executor)
+        started = time.perf_counter()
+        runs, stopping = run_ensembles(model, inits, seeds, options, ckpts, executor)
+        seconds = time.perf_counter() - started
     finally:
         if own:
             executor.close()
     return SamplingResult(names=list(model.names), runs=runs, theta_map=theta_map, log_post_map=float(lp_map),
-                          options=options)
+                          options=options, extras={"stopping": stopping, "sampling_seconds": seconds})
 
 
-def _run_all(model, inits, seeds, ckpts, options, executor):
+def run_ensembles(model, inits, seeds, options: SamplerOptions, checkpoints=None, executor=None):
+    """Run one ensemble per initial ball ``inits[e]`` (walkers, D) and seed under ``options.stop``'s rule.
+
+    ``model`` is the vectorised log posterior (with ``names``); ``checkpoints`` one file (or None) per
+    ensemble; ``executor`` default this process. Returns ([:class:`EnsembleRun`], what the ESS rule saw
+    at its last check, empty under the τ rule).
+    """
+    from cpas_bayes.core.executor import Executor
+
+    executor = executor or Executor()
+    ckpts = list(checkpoints) if checkpoints is not None else [None] * len(inits)
     labels = [f"ensemble {e + 1}/{len(inits)}" for e in range(len(inits))]
-    jobs = [(model, i, s, options, c, lab) for i, s, c, lab in zip(inits, seeds, ckpts, labels)]
     bars = _ProgressBars(labels, options) if options.progress and sys.stderr.isatty() else None
     try:
+        if options.stop == "ess":
+            return _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars)
+        jobs = [(model, i, s, options, c, lab) for i, s, c, lab in zip(inits, seeds, ckpts, labels)]
         return executor.map(_ensemble_task, jobs, desc="ensembles", progress=False,
-                            on_report=bars.update if bars else None)
+                            on_report=bars.update if bars else None), {}
     finally:
         if bars:
             bars.close()
+
+
+def _chunk_task(job):
+    """Advance one ensemble from a state by ``n_stored`` stored steps: (chain, log_prob, accepted, random state).
+
+    The same steps as continuing one sampler: emcee takes the walkers, their log posterior and its random
+    state from the :class:`emcee.State`, and the moves hold no state of their own.
+    """
+    model, (coords, log_prob, random_state), n_stored, store_every = job
+    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves())
+    sampler.run_mcmc(emcee.State(coords, log_prob=log_prob, random_state=random_state), n_stored,
+                     thin_by=store_every, progress=False)
+    b = sampler.backend
+    return b.get_chain(), b.get_log_prob(), b.accepted.copy(), sampler.random_state
+
+
+def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
+    """The ESS rule: all ensembles one chunk further, then :func:`ess_check` on the common length, until met
+    or ``max_steps``. Chunks a checkpoint already holds are not rerun but checked again (the replay), so a
+    resumed run stops where an uninterrupted one does. The main process holds every checkpoint's lock."""
+    from contextlib import ExitStack
+
+    from cpas_bayes.core.files import exclusive_writer
+
+    per_chunk = max(1, options.check_every // options.store_every)
+    with ExitStack() as held:
+        for ckpt in ckpts:
+            held.enter_context(exclusive_writer(ckpt or None))
+        stores = [_EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
+        end, tau_prev = 0, None
+        while True:
+            end += per_chunk
+            behind = [st for st in stores if st.stored < end]
+            jobs = [(model, st.next_state(), end - st.stored, options.store_every) for st in behind]
+            for st, piece in zip(behind, executor.map(_chunk_task, jobs, desc="chunk", progress=False)):
+                st.append(*piece)
+            chains = [st.sampler.backend.get_chain()[:end] for st in stores]
+            check = ess_check(chains, options.store_every, options.ess_target, options.rhat_target, tau_prev,
+                              options.tau_rtol)
+            tau_prev = check.taus
+            steps = end * options.store_every
+            for label, tau in zip(labels, check.taus) if bars else ():
+                bars.update(label, steps, float(np.max(tau)), check.met)
+            if check.met or steps >= options.max_steps:
+                break
+    runs = [_ensemble_run(chain, st.sampler.backend.get_log_prob()[:end], tau, bt, steps, st.acceptance(),
+                          check.met, options.store_every)
+            for st, chain, tau, bt in zip(stores, chains, check.taus, check.burn_thin)]
+    worst = check.statistics.worst() if check.statistics else (np.nan, np.nan, np.nan)
+    return runs, {"stop": "ess", "ess_bulk_min": worst[0], "ess_tail_min": worst[1], "rhat_max": worst[2]}
 
 
 class _ProgressBars:

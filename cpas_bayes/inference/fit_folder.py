@@ -38,6 +38,7 @@ from cpas_bayes.core.summaries import quantile_summary
 from cpas_bayes.core.files import atomic_path, jsonable, write_json
 from cpas_bayes.core.inputs import name_problem, read_json
 from cpas_bayes.physics.inflation import stage_key
+from cpas_bayes.inference.stopping import TAIL_QUANTILES
 from cpas_bayes.stats.priors import prior_from_table
 
 SUMMARY_NAME = "summary.json"
@@ -340,7 +341,8 @@ def convergence(tree, sampling, rhat_max=1.01, ess_min=400):
         # best available (optimistic, since walkers share the ensemble's moves).
         rhat = az.rhat(tree, var_names=names)
     ess_bulk = az.ess(tree, var_names=names, method="bulk")
-    ess_tail = az.ess(tree, var_names=names, method="tail")
+    # the 90 % interval's endpoints, as the ESS stopping rule (ArviZ 1.x's default reads 0.89 as quantiles)
+    ess_tail = az.ess(tree, var_names=names, method="tail", prob=TAIL_QUANTILES)
 
     def values(ds):
         return {n: float(np.asarray(ds[n].values)) for n in names}
@@ -403,6 +405,7 @@ def build_summary(model, tree, diagnostics, options, ppc_table=None):
         "warnings": fit_warnings(model, tree, diagnostics, ppc_table),
         "priors": {prm.name: prm.prior.describe() for prm in model.parameters},
         "sampler": {"seed": options.seed, "ensembles": options.n_ensembles, "walkers": options.walkers,
-                    "check_every": options.check_every, "max_steps": options.max_steps},
+                    "check_every": options.check_every, "max_steps": options.max_steps, "stop": options.stop,
+                    "ess_target": options.ess_target, "rhat_target": options.rhat_target},
         "version": __version__,
     }
