@@ -66,7 +66,8 @@ def _candidate(label, elpd_i, size=None, converged=True, posterior=None):
             else:   # a shape parameter the data pin near its prior median
                 med = float(p.prior.ppf(0.5))
                 post[p.name] = xr.DataArray(med + 0.01 * abs(med) * rng.standard_normal((2, 200)))
-    fit = SimpleNamespace(summary={"diagnostics": {"converged": converged, "rhat_max": 1.0 if converged else 1.3}},
+    fit = SimpleNamespace(summary={"diagnostics": {"converged": converged, "rhat_max": 1.0 if converged else 1.3,
+                                                   "ess_bulk_min": 2000.0 if converged else 150.0}},
                           model=SimpleNamespace(parameters=params), tree={"posterior": post})
     return cf.CandidateFit(name=label, fit=fit, loo=loo, seconds=0.0)
 
@@ -117,6 +118,16 @@ def test_a_fit_that_did_not_converge_cannot_be_named():
     ref, cands = _field({"sensor_lag": 60.0}, sensor_lag={"converged": False})
     checks, (chosen, _, _) = _judge(ref, cands)
     assert chosen is None and any("did not converge" in r for r in checks[0].reasons)
+
+
+def test_convergence_for_naming_is_rhat_and_ess_not_the_step_limit():
+    """An ensemble stopped at its step limit short of 10 τ is converged for naming when the nested R-hat
+    and bulk ESS are on target; either off target is not."""
+    def fit(rhat, ess):
+        return SimpleNamespace(summary={"diagnostics": {"converged": False, "rhat_max": rhat, "ess_bulk_min": ess}})
+    assert rule.fit_converged(fit(1.008, 900))
+    assert not rule.fit_converged(fit(1.02, 900))
+    assert not rule.fit_converged(fit(1.008, 300))
 
 
 def test_a_negligible_fitted_size_names_nothing():

@@ -48,7 +48,7 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, Candidat
                                                  polish_baseline_map, screen_candidate)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_term, compare_table,
-                                                 paired_difference, passes, structured_phases, unexplained_share,
+                                                 fit_converged, paired_difference, passes, structured_phases, unexplained_share,
                                                  versus_baseline)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
@@ -309,7 +309,7 @@ def _model_forms(baseline, fits, options):
                      "in_words": f"{better} beats {worse} by {margin:.1f} ± {se:.1f} in elpd"
                                  + ("" if margin > max(options.min_gain_se * se, FORM_MARGIN)
                                     else f" (within 2 se or {FORM_MARGIN:g}: no clear winner)"),
-                     "converged": bool(fit.fit.summary["diagnostics"]["converged"])})
+                     "converged": fit_converged(fit.fit)})
     return rows
 
 
