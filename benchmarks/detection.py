@@ -2,6 +2,7 @@
 
     python benchmarks/detection.py [--out benchmarks/detection.csv] [--study clean,ooc,pairs,power]
                                    [--seeds 20] [--mode full|screen] [--scenarios drogue,main]
+                                   [--effects a,b]
 
 Each case is a synthetic test (:mod:`cpas_bayes.data.synth`) with a known
 hidden effect, diagnosed with the default rule; one row per case goes into
@@ -109,7 +110,10 @@ def run(args):
         out.parent.mkdir(parents=True, exist_ok=True)
         with out.open("w", newline="") as f:
             csv.DictWriter(f, FIELDS).writeheader()
+    effects = set(args.effects.split(",")) if args.effects else None
     todo = [c for c in cases(args.study.split(","), args.seeds, args.scenarios.split(","))
+            if effects is None or c[2] in effects]
+    todo = [c for c in todo
             if (c[0], c[1], c[2], "" if c[3] is None else str(c[3]), str(c[4]), args.mode) not in done]
     print(f"{len(todo)} cases to run ({len(done)} already in {out})", flush=True)
     executor = make_executor(args.workers)
@@ -161,6 +165,7 @@ def main(argv=None):
     parser.add_argument("--study", default=",".join(STUDIES))
     parser.add_argument("--seeds", type=int, default=20, help="cases per study cell")
     parser.add_argument("--scenarios", default="drogue,main")
+    parser.add_argument("--effects", default="", help="only these hidden effects (comma-separated; default all)")
     parser.add_argument("--mode", default="full", choices=("screen", "full"),
                         help="full is what `cpas-bayes diagnose` runs; screen is the campaign's default")
     parser.add_argument("--workers", type=int, default=2)
@@ -168,6 +173,10 @@ def main(argv=None):
     unknown = set(args.study.split(",")) - set(STUDIES)
     if unknown:
         parser.error(f"unknown study {sorted(unknown)[0]!r}; use any of {', '.join(STUDIES)}")
+    known = sorted({c[2] for c in cases(STUDIES, len(PAIRS), ["drogue"])})
+    unknown = set(filter(None, args.effects.split(","))) - set(known)
+    if unknown:
+        parser.error(f"unknown effect {sorted(unknown)[0]!r}; use any of {', '.join(known)}")
     run(args)
 
 

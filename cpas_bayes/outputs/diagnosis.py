@@ -34,7 +34,8 @@ DIAGNOSIS_NAME = "diagnosis.json"
 _WHAT = {
     "added_mass": "the air mass carried along with each canopy (enclosed and apparent) adds a momentum term "
                   "d(m_a·V)/dt to the load while the canopy grows and the system decelerates; without it the "
-                  "model reaches the peak load too early and too sharp",
+                  "model reaches the peak load too early and too sharp (its fitted exponent of drag area and "
+                  "lag say how the carried air builds up)",
     "friction_drift": "the load-cell friction factor changes during the test, so one constant scale factor "
                       "cannot match the load cells to the accelerometer in every stage",
     "sensor_lag": "the load cells run behind the accelerometer's time base: every load-cell feature arrives "
