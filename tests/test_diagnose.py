@@ -130,6 +130,38 @@ def test_convergence_for_naming_is_rhat_and_ess_not_the_step_limit():
     assert not rule.fit_converged(fit(1.008, 300))
 
 
+def _two_ensemble_fit(loglik_shift, rhat, bins=300):
+    """A stand-in fit of two 4-walker ensembles whose pointwise log-likelihoods differ by ``loglik_shift``
+    per bin, and a reference 0.2 per bin below; returns (candidate, reference)."""
+    rng = np.random.default_rng(3)
+    base = rng.normal(-1.0, 0.3, bins)
+    ll = base + 0.01 * rng.standard_normal((8, 200, bins))
+    ll[4:] += loglik_shift
+    post = xr.Dataset({"x": (("chain", "draw"), rng.standard_normal((8, 200)))},
+                      coords={"chain": np.arange(8), "draw": np.arange(200),
+                              "ensemble": ("chain", np.repeat([0, 1], 4))})
+    tree = xr.DataTree.from_dict({"posterior": post,
+                                  "log_likelihood": xr.Dataset({"total": (("chain", "draw", "time"), ll)})})
+    fit = SimpleNamespace(tree=tree, summary={"diagnostics": {"rhat_max": rhat, "ess_bulk_min": 1000.0,
+                                                              "converged": False}})
+    ref_ll = base - 0.2 + 0.01 * rng.standard_normal((8, 200, bins))
+    ref_tree = xr.DataTree.from_dict({"posterior": post,
+                                      "log_likelihood": xr.Dataset({"total": (("chain", "draw", "time"), ref_ll)})})
+    return (cf.CandidateFit(name="t", fit=fit, loo=cf.psis_loo(tree), seconds=0.0),
+            cf.CandidateFit(name="r", fit=None, loo=cf.psis_loo(ref_tree), seconds=0.0))
+
+
+@pytest.mark.parametrize("shift,rhat,settled", [(0.0, 1.03, True), (0.05, 1.03, False), (0.0, 1.08, False)])
+def test_a_fit_short_of_rhat_settles_the_comparison_when_its_ensembles_agree_on_the_gain(shift, rhat, settled):
+    """Each ensemble alone gives the gain (0.2 per bin × 300 = 60, the second + 300·shift); settled when they
+    agree within the se given and R-hat ≤ 1.05."""
+    cand, ref = _two_ensemble_fit(shift, rhat)
+    ok, gains = rule.comparison_settled(cand, ref, se=5.0)
+    assert ok is settled
+    if rhat <= rule.RHAT_LOOSE:
+        assert gains[0] == pytest.approx(60.0, abs=0.1) and gains[1] == pytest.approx(60.0 + 300 * shift, abs=0.1)
+
+
 def test_a_negligible_fitted_size_names_nothing():
     """A real elpd gain from a lag of 2 ms (one 100 Hz sample is the floor) is not a cause."""
     ref, cands = _field({"sensor_lag": 30.0}, sensor_lag={"size": -0.002})

@@ -22,7 +22,11 @@ T may be named when
   T is added). The discrepancy interpolates a smooth misfit well, so a term
   of the right physics may beat it by less than 2 se on the bins while
   explaining nearly all of it; a stand-in leaves most of it in place;
-* its fit converged: nested R-hat ≤ 1.01 and bulk ESS ≥ 400 (:func:`fit_converged`);
+* its fit converged: nested R-hat ≤ 1.01 and bulk ESS ≥ 400 (:func:`fit_converged`) —
+  or R-hat ≤ 1.05 and bulk ESS ≥ 400 with the gains its ensembles give one by
+  one within the comparison's se of each other (:func:`comparison_settled`:
+  the verdict needs the gain, and more sampling could move it by less than the
+  data's own uncertainty about it);
 * its fitted size is beyond the term's practical floor (``Extension.practical_floor``);
 * no parameter of T sits at the edge of its prior: the posterior's 5 % or
   95 % quantile beyond the prior's 0.5 % or 99.5 % point (a stand-in that
@@ -84,7 +88,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from cpas_bayes.inference.candidate_fits import BASELINE, CandidateFit, DiagnoseOptions
+from cpas_bayes.inference.candidate_fits import BASELINE, CandidateFit, DiagnoseOptions, psis_loo
 from cpas_bayes.inference.fit_health import ESS_MIN, RHAT_MAX
 from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
 
@@ -94,6 +98,7 @@ PPC_TAIL = 0.005            # a PPC statistic is flagged outside [PPC_TAIL, 1 �
 PPC_MAX_FLAGS = 2           # ... and more than this many flags fail the baseline
 EDGE_QUANTILE = 0.005
 REPEATS_PRIOR = 0.9
+RHAT_LOOSE = 1.05           # R-hat a fit may have when its ensembles agree on the gain (comparison_settled)
 TAKE_OVER = 0.7             # share of a significant discrepancy a term must take over when its gain is < 2 se
 
 
@@ -117,6 +122,29 @@ def compare_table(baseline, candidates):
         warnings.filterwarnings("ignore", category=UserWarning)
         table = az.compare(trees, var_name="total")
     return table
+
+
+def ensemble_gains(candidate: CandidateFit, reference: CandidateFit):
+    """elpd(candidate) − elpd(reference) with the candidate's PSIS-LOO from each of its ensembles alone."""
+    tree = candidate.fit.tree
+    ensemble = np.asarray(tree["posterior"]["ensemble"].values)
+    gains = []
+    for e in np.unique(ensemble):
+        sub = tree.isel(chain=np.flatnonzero(ensemble == e), missing_dims="ignore")
+        gains.append(float(psis_loo(sub).elpd) - float(reference.loo.elpd))
+    return gains
+
+
+def comparison_settled(candidate: CandidateFit, reference: CandidateFit, se):
+    """Whether a fit short of R-hat 1.01 still settles the comparison: bulk ESS ≥ 400, R-hat ≤ 1.05
+    and the gains its ensembles give one by one within ``se`` (the comparison's own standard error
+    from the data) of each other — more sampling could then move the gain by less than the data's
+    uncertainty about it. Returns (settled, the per-ensemble gains)."""
+    d = candidate.fit.summary["diagnostics"]
+    if not (d["ess_bulk_min"] >= ESS_MIN and d["rhat_max"] <= RHAT_LOOSE):
+        return False, []
+    gains = ensemble_gains(candidate, reference)
+    return bool(max(gains) - min(gains) <= se), gains
 
 
 def fit_converged(fit):
@@ -222,12 +250,15 @@ def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: 
     """
     diff, se = paired_difference(candidate, reference)
     converged = fit_converged(candidate.fit)
+    settled, per_ensemble = (False, [])
+    if not converged:
+        settled, per_ensemble = comparison_settled(candidate, reference, se)
     health = parameter_health(candidate, term)
     size = next((h["median"] for h in health.values() if h["is_size"]), None)
     floor = make_extension(term).practical_floor
     below = floor is not None and size is not None and abs(size) < floor[1]
     check = TermCheck(term=term, model=candidate.name, reference=reference.name, elpd_diff=diff, elpd_diff_se=se,
-                      converged=converged, size=size, below_floor=below,
+                      converged=converged or settled, size=size, below_floor=below,
                       at_edge=[f"{n} ({h['edge']} edge of its prior, median {h['median']:.3g})"
                                for n, h in health.items() if h["edge"]],
                       repeats_prior=[n for n, h in health.items() if h["repeats_prior"]],
@@ -246,9 +277,13 @@ def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: 
                  f"{options.min_gain:g} and > {options.min_gain_se:g} se, or > {options.min_gain:g} while taking over "
                  f"≥ {100 * TAKE_OVER:.0f} % of a significant discrepancy"
                  + (f"; it takes over {100 * share:.0f} %" if share is not None else "") + ")")
-    if not converged:
-        r.append(f"the fit of {candidate.name} did not converge (R-hat "
-                 f"{candidate.fit.summary['diagnostics']['rhat_max']:.3f}): it cannot name {term}")
+    rhat = candidate.fit.summary['diagnostics']['rhat_max']
+    spread = f"; its ensembles give {', '.join(f'{g:.1f}' for g in per_ensemble)}" if per_ensemble else ""
+    if settled:
+        r.append(f"the fit of {candidate.name} is short of R-hat 1.01 ({rhat:.3f}) but its ensembles agree on the "
+                 f"gain within its se{spread}")
+    elif not converged:
+        r.append(f"the fit of {candidate.name} did not converge (R-hat {rhat:.3f}{spread}): it cannot name {term}")
     if below:
         r.append(f"{term}'s fitted size {floor[0]} = {size:.3g} is below the practical floor {floor[1]:g}: "
                  "a real but negligible effect, not a cause")
