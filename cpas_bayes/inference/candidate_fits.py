@@ -266,7 +266,7 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
         # Also from the baseline with the discrepancy at its prior median (off): from the reference's
         # MAP the discrepancy already holds the misfit, and the search would keep it there with the
         # term small (a Main's added mass came out at k_a 0.07 against 0.41 true and lost).
-        guesses += start_guesses(model, baseline)
+        guesses += start_guesses(model, baseline)[-1:]    # the last start point: the term at a typical size
     rng = np.random.default_rng([options.seed, candidate_seed_index(label), 3])
     theta, log_post = find_map(model, rng, max(len(guesses), options.sampler.map_starts), guesses)
     gain = float(log_post - reference.fit.sampling.log_post_map)
