@@ -406,8 +406,10 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
         retry = [c.term for c in checks
                  if c.gains and not c.converged and not (c.below_floor or c.at_edge or c.size_repeats_prior)]
         if retry:
+            # both limits: with the same seed a fit whose τ rule was met would stop where it did
             longer = replace(options, sampler=replace(options.sampler,
-                                                      max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR))
+                                                      max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR,
+                                                      tau_factor=options.sampler.tau_factor * RETRY_STEPS_FACTOR))
             say(f"{test.name}: {', '.join(retry)} gained but did not converge: a fit {RETRY_STEPS_FACTOR}× longer")
             jobs = [(labels[t], test, reduction, longer, reference, baseline, [fitted[t].fit.sampling.theta_map])
                     for t in retry]

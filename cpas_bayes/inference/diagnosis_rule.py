@@ -277,13 +277,14 @@ def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: 
                  f"{options.min_gain:g} and > {options.min_gain_se:g} se, or > {options.min_gain:g} while taking over "
                  f"≥ {100 * TAKE_OVER:.0f} % of a significant discrepancy"
                  + (f"; it takes over {100 * share:.0f} %" if share is not None else "") + ")")
-    rhat = candidate.fit.summary['diagnostics']['rhat_max']
+    rhat, ess = (candidate.fit.summary['diagnostics'][k] for k in ("rhat_max", "ess_bulk_min"))
     spread = f"; its ensembles give {', '.join(f'{g:.1f}' for g in per_ensemble)}" if per_ensemble else ""
     if settled:
         r.append(f"the fit of {candidate.name} is short of R-hat 1.01 ({rhat:.3f}) but its ensembles agree on the "
                  f"gain within its se{spread}")
     elif not converged:
-        r.append(f"the fit of {candidate.name} did not converge (R-hat {rhat:.3f}{spread}): it cannot name {term}")
+        r.append(f"the fit of {candidate.name} did not converge (R-hat {rhat:.3f}, bulk ESS {ess:.0f}{spread}): "
+                 f"it cannot name {term}")
     if below:
         r.append(f"{term}'s fitted size {floor[0]} = {size:.3g} is below the practical floor {floor[1]:g}: "
                  "a real but negligible effect, not a cause")
