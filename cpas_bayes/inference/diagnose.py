@@ -19,7 +19,7 @@ Procedure (``diagnose_test``)
    MAP gain bounds the elpd gain from above, so a term that cannot raise the
    best fit cannot predict held-out bins better) and judge T against
    named + discrepancy (:mod:`cpas_bayes.inference.diagnosis_rule`), refitting
-   once with 3× the steps a term that gains and fails only on convergence; name the
+   once with 3× the steps (mode full) a term that gains and fails only on convergence; name the
    best passing term, add it to the reference and try the others again,
    until none passes.
 4. **Unexplained?** Fit the named terms without the discrepancy: the
@@ -403,8 +403,8 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
         checks = [judge(t) for t in to_fit]
         # A term that gains, and fails only on convergence, gets one longer fit from its MAP: the
         # form parameters of a term (an added mass's lag) can need more steps than the diagnosis' budget.
-        retry = [c.term for c in checks
-                 if c.gains and not c.converged and not (c.below_floor or c.at_edge or c.size_repeats_prior)]
+        retry = [c.term for c in checks if options.mode == "full"    # mode screen is the quick look
+                 and c.gains and not c.converged and not (c.below_floor or c.at_edge or c.size_repeats_prior)]
         if retry:
             # both limits: with the same seed a fit whose τ rule was met would stop where it did
             longer = replace(options, sampler=replace(options.sampler,
