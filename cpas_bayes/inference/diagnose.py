@@ -48,8 +48,8 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, Candidat
                                                  polish_baseline_map, screen_candidate)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_term, compare_table,
-                                                 fit_converged, paired_difference, passes, structured_phases, unexplained_share,
-                                                 versus_baseline)
+                                                 fit_converged, paired_difference, passes, structured_phases,
+                                                 unexplained_share, versus_baseline)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals

@@ -53,7 +53,7 @@ from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import atomic_path
 from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
 from cpas_bayes.inference.stopping import (ESS_TARGET, RHAT_TARGET, STOP_RULES, burn_and_thin, ess_check,
-                                           integrated_time)
+                                           integrated_time, pool_kept)
 from cpas_bayes.stats.model import TestModel
 
 
@@ -114,9 +114,8 @@ class SamplingResult:
         s = min(r.draws.shape[1] for r in self.runs)
         if draws_per_ensemble is not None:
             s = min(s, draws_per_ensemble)
-        chains = np.concatenate([r.draws[:, -s:, :] for r in self.runs], axis=0)
+        chains, ensemble = pool_kept([np.swapaxes(r.draws[:, -s:, :], 0, 1) for r in self.runs])
         lp = np.concatenate([r.log_prob[:, -s:] for r in self.runs], axis=0)
-        ensemble = np.concatenate([np.full(r.draws.shape[0], e) for e, r in enumerate(self.runs)])
         return chains, lp, ensemble
 
 

@@ -111,7 +111,7 @@ def burn_and_thin(tau, store_every, n_stored=None):
 
 def pool_kept(kept):
     """Kept draws of E ensembles [(S_e, W, D)] → (E·W chains, S, D) with S = min S_e (each ensemble's last S),
-    and the ensemble of each chain. The same pooling as ``SamplingResult.stacked``."""
+    and the ensemble of each chain (``SamplingResult.stacked`` pools a fit's draws with it)."""
     s = min(k.shape[0] for k in kept)
     chains = np.concatenate([np.swapaxes(k[k.shape[0] - s:], 0, 1) for k in kept], axis=0)
     ensemble = np.concatenate([np.full(k.shape[1], e) for e, k in enumerate(kept)])
