@@ -164,7 +164,7 @@ def bench_parallel():
 
     test = read_bundle(next(p for p in example_bundles() if p.name.startswith("drogue")))
     model = prepare_model(test, reduce_test(test))
-    options = SamplerOptions(seed=0, n_ensembles=4, max_steps=2000, check_every=500, tau_factor=1e9,
+    options = SamplerOptions(seed=0, n_ensembles=4, max_steps=2000, check_every=500, stop="tau", tau_factor=1e9,
                              progress=False)
     theta, _ = find_map(model, np.random.default_rng(0), 2)
     cov = laplace_covariance(model, theta)

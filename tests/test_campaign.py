@@ -65,6 +65,7 @@ workers = 1
 [fit]
 ensembles = 1
 max_steps = 1000
+stop = "tau"
 tau_factor = 10
 [diagnose]
 model_forms = false

@@ -127,7 +127,8 @@ def bad_options(f):
         ("fit --stop unknown", fit + ["--stop", "rhat"], "--stop"),
         ("fit --ess-target 0", fit + ["--stop", "ess", "--ess-target", "0"], "--ess-target"),
         ("fit --ess-target beyond", fit + ["--stop", "ess", "--ess-target", "1000000"], "--ess-target"),
-        ("fit --ess-target without --stop ess", fit + ["--ess-target", "1000"], "--ess-target"),
+        ("fit --ess-target with --stop tau", fit + ["--stop", "tau", "--ess-target", "1000"], "--ess-target"),
+        ("fit with one ensemble (the ESS rule compares them)", fit + ["--ensembles", "1"], "--ensembles"),
         ("fit --stop ess with one ensemble", fit + ["--stop", "ess", "--ensembles", "1"], "--ensembles"),
         ("fit --workers 0", fit + ["--workers", "0"], "--workers"),
         ("fit --workers huge", fit + ["--workers", "100000"], "--workers"),
@@ -253,7 +254,7 @@ def test_any_non_finite_or_far_out_magnitude_is_refused(fresh, capsys, effect, v
 CONFIG_NUMBERS = {  # TOML key -> (table, key)
     "seed": ((), "seed"), "workers": ((), "workers"), "fit.ensembles": (("fit",), "ensembles"),
     "fit.max_steps": (("fit",), "max_steps"), "fit.check_every": (("fit",), "check_every"),
-    "fit.tau_factor": (("fit",), "tau_factor"), "montecarlo.runs": (("montecarlo",), "runs"),
+    "fit.tau_factor": (("fit",), "tau_factor"), "fit.ess_target": (("fit",), "ess_target"), "montecarlo.runs": (("montecarlo",), "runs"),
     "compare.runs": (("compare",), "runs"), "pool.draws": (("pool",), "draws"),
 }
 
@@ -284,6 +285,10 @@ def test_any_bad_number_in_a_campaign_config_is_refused_naming_the_key(fresh, ke
     ("[fit]\ncheck_every = 0\n", ["key 'fit.check_every'"]),
     ("[fit]\nensembles = 0\n", ["key 'fit.ensembles'"]),
     ("[fit]\ntau_factor = nan\n", ["key 'fit.tau_factor'", "finite"]),
+    ("[fit]\nstop = 'tua'\n", ["key 'fit.stop'", "did you mean 'tau'"]),
+    ("[fit]\nensembles = 1\n", ["key 'fit.ensembles'", "2 or more ensembles", "fit.stop = \"tau\""]),
+    ("[fit]\ntau_factor = 20\n", ["key 'fit.tau_factor'", "only with fit.stop = \"tau\""]),
+    ("[fit]\nstop = 'tau'\ness_target = 500\n", ["key 'fit.ess_target'", "only with fit.stop = \"ess\""]),
     ("[fit]\nmax_steps = 200\ncheck_every = 500\n", ["check_every 500 is more than max_steps 200"]),
     ("[fit]\nensemble = 2\n", ["key 'fit.ensemble'", "did you mean 'fit.ensembles'"]),
     ("wokers = 2\n", ["key 'wokers'", "did you mean 'workers'"]),

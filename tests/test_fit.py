@@ -65,8 +65,8 @@ def test_killed_run_resumes_to_the_same_chain(drogue_example, tmp_path):
     theta_map, _ = find_map(model, np.random.default_rng(0), starts=1)
     init = initial_walkers(model, theta_map, laplace_covariance(model, theta_map), 2 * model.ndim + 2,
                            np.random.default_rng(1))
-    whole = SamplerOptions(max_steps=1000, check_every=250, tau_factor=1e9)
-    first_part = SamplerOptions(max_steps=250, check_every=250, tau_factor=1e9)
+    whole = SamplerOptions(max_steps=1000, check_every=250, stop="tau", tau_factor=1e9)
+    first_part = SamplerOptions(max_steps=250, check_every=250, stop="tau", tau_factor=1e9)
     uninterrupted = run_ensemble(model, init, 5, whole, checkpoint=None)
     ckpt = tmp_path / "ensemble_0.h5"
     run_ensemble(model, init, 5, first_part, checkpoint=ckpt)
@@ -132,8 +132,8 @@ def test_composite_cluster_fits_end_to_end_and_loses_to_individual_parachutes(dr
     first, second = (truth[f"{p.id}.s2.start"] for p in test.parachutes)
     assert abs(first - second) > 0.3
     composite = prepare_model(test, reduce_test(test), cluster="composite")
-    options = SamplerOptions(seed=3, n_ensembles=2, check_every=250, max_steps=1000, tau_factor=5.0, tau_rtol=0.5,
-                             map_starts=2, workers=2, progress=False)
+    options = SamplerOptions(seed=3, n_ensembles=2, check_every=250, max_steps=1000, stop="tau", tau_factor=5.0,
+                             tau_rtol=0.5, map_starts=2, workers=2, progress=False)
     fit = fit_model(composite, options, out=tmp_path / "composite")
     d = fit.summary["diagnostics"]
     assert d["rhat_max"] < 1.02 and all(d["ensembles_converged"]), d

@@ -314,7 +314,7 @@ def test_a_resumed_ensemble_keeps_the_convergence_history_and_a_finished_one_add
 
     model, init = drogue_start
     # converges at the second check (τ settles at once): the first check's τ must survive a resume
-    whole = SamplerOptions(max_steps=2000, check_every=250, tau_factor=0.01, tau_rtol=100.0)
+    whole = SamplerOptions(max_steps=2000, check_every=250, stop="tau", tau_factor=0.01, tau_rtol=100.0)
     uninterrupted = run_ensemble(model, init, 5, whole)
     assert uninterrupted.converged and uninterrupted.steps == 500
     ckpt = tmp_path / "ckpt" / "ensemble_0.h5"
@@ -406,7 +406,7 @@ def test_workers_end_when_the_process_that_started_them_is_killed(tmp_path):
 
 
 # A fit with short chains, through the CLI's own main(): `cpas-bayes fit BUNDLE --out OUT --workers 2`.
-SHORT_FIT = dict(max_steps=1000, check_every=100, tau_factor=1e9, map_starts=1)
+SHORT_FIT = dict(max_steps=1000, check_every=100, stop="tau", tau_factor=1e9, map_starts=1)
 FIT_CLI = """
 import dataclasses, sys
 import cpas_bayes.inference.fit as fit

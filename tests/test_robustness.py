@@ -86,7 +86,7 @@ def test_monte_carlo_is_identical_on_every_executor():
 # ---------------------------------------------------------------------------
 # a fit killed with SIGKILL, interrupted with Ctrl-C
 
-FIT_OPTIONS = dict(seed=3, n_ensembles=2, workers=1, check_every=100, max_steps=800, tau_factor=1e9,
+FIT_OPTIONS = dict(seed=3, n_ensembles=2, workers=1, check_every=100, max_steps=800, stop="tau", tau_factor=1e9,
                    map_starts=1, progress=False)
 
 FIT_SCRIPT = """
@@ -172,6 +172,7 @@ name = "executor campaign"
 [fit]
 ensembles = 2
 max_steps = 600
+stop = "tau"
 tau_factor = 10
 check_every = 200
 [diagnose]

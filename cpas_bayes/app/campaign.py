@@ -488,6 +488,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
                                             "fit_check_every")}
         if config.below_previous != CampaignConfig.below_previous:   # keyed only when set: default keys unchanged
             fit_opts["below_previous"] = config.below_previous
+        if config.fit_stop != "tau":   # fits of the τ rule, the only rule before the ESS rule, keep their keys
+            fit_opts.update(fit_stop=config.fit_stop, fit_ess_target=config.fit_ess_target)
         fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
         if config.diagnose != "off":
             diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))

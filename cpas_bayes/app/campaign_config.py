@@ -13,6 +13,7 @@ from pathlib import Path
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.inputs import did_you_mean, read_toml
 from cpas_bayes.inference.fit import SamplerOptions
+from cpas_bayes.inference.stopping import ESS_TARGET, STOP_RULES
 from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
 from cpas_bayes.stats.model_terms import EXTENSIONS
 
@@ -30,6 +31,8 @@ class CampaignConfig:
     below_previous: str = "drop"          # a stage not above the held drag area: "drop" or "hold" (NASA CML)
     fit_ensembles: int = 4
     fit_max_steps: int = 20000
+    fit_stop: str = "ess"                 # when a fit stops: "ess" (ESS and R-hat targets) or "tau" (tau_factor·τ)
+    fit_ess_target: int = ESS_TARGET
     fit_tau_factor: float = 50.0
     fit_check_every: int = 500
     workers: int = 2
@@ -42,16 +45,16 @@ class CampaignConfig:
 
     def sampler(self) -> SamplerOptions:
         return SamplerOptions(seed=self.seed, n_ensembles=self.fit_ensembles, max_steps=self.fit_max_steps,
-                              tau_factor=self.fit_tau_factor, check_every=self.fit_check_every,
-                              workers=self.workers)
+                              stop=self.fit_stop, ess_target=self.fit_ess_target, tau_factor=self.fit_tau_factor,
+                              check_every=self.fit_check_every, workers=self.workers)
 
 
 # TOML layout: top-level keys and tables mapping onto CampaignConfig fields.
 _TOML_KEYS = {
     (): {"name": "name", "seed": "seed", "priors": "priors", "decay": "decay", "below_previous": "below_previous",
          "workers": "workers"},
-    ("fit",): {"ensembles": "fit_ensembles", "max_steps": "fit_max_steps", "tau_factor": "fit_tau_factor",
-               "check_every": "fit_check_every"},
+    ("fit",): {"ensembles": "fit_ensembles", "max_steps": "fit_max_steps", "stop": "fit_stop",
+               "ess_target": "fit_ess_target", "tau_factor": "fit_tau_factor", "check_every": "fit_check_every"},
     ("diagnose",): {"mode": "diagnose", "candidates": "candidates", "model_forms": "model_forms"},
     ("montecarlo",): {"runs": "montecarlo_runs"},
     ("compare",): {"runs": "compare_runs"},
@@ -68,9 +71,12 @@ below_previous = "drop"       # a stage below the held drag area drops to its ow
 workers = 2                   # local processes: 1 to max(4, 2 × cores)
 
 [fit]
-ensembles = 4                 # 1–16
+ensembles = 4                 # 1–16 (2 or more with stop = "ess")
 max_steps = 20000             # 100–100,000 steps per ensemble
-tau_factor = 50               # converged when longer than tau_factor·τ
+stop = "ess"                  # converged when every parameter's bulk and tail ESS ≥ ess_target and R-hat ≤ 1.01
+ess_target = 1000             # 100–100,000
+# stop = "tau"                # or: converged when longer than tau_factor·τ
+# tau_factor = 50             # only with stop = "tau"
 check_every = 500             # steps between convergence checks and checkpoints (10–10,000)
 
 [diagnose]
@@ -137,6 +143,8 @@ def load_config(path) -> CampaignConfig:
             problem = f"{value!r:.40} is not true or false"
         elif name == "decay" and value not in DECAY_SHAPES:
             problem = f"{value!r:.40}{did_you_mean(str(value), DECAY_SHAPES)} is not one of {_quoted(DECAY_SHAPES)}"
+        elif name == "fit_stop" and value not in STOP_RULES:
+            problem = f"{value!r:.40}{did_you_mean(str(value), STOP_RULES)} is not one of {_quoted(STOP_RULES)}"
         elif name == "below_previous" and value not in BELOW_PREVIOUS_RULES:
             problem = (f"{value!r:.40}{did_you_mean(str(value), BELOW_PREVIOUS_RULES)} is not one of "
                        f"{_quoted(BELOW_PREVIOUS_RULES)}")
@@ -150,6 +158,14 @@ def load_config(path) -> CampaignConfig:
         elif name == "fit_tau_factor":
             values[name] = float(value)
     config = replace(defaults, **values)
+    if config.fit_stop == "ess" and config.fit_ensembles < 2:
+        raise InputError(path, where.get("fit_ensembles", where.get("fit_stop", "key 'fit.stop'")),
+                         f"stop \"ess\" needs 2 or more ensembles (its R-hat compares them), not {config.fit_ensembles}",
+                         "set fit.ensembles = 2 or more, or fit.stop = \"tau\"")
+    for name, other in (("fit_tau_factor", "tau"), ("fit_ess_target", "ess")):
+        if name in values and config.fit_stop != other:
+            raise InputError(path, where[name], f"applies only with fit.stop = \"{other}\", and stop is "
+                             f"\"{config.fit_stop}\"", f"set fit.stop = \"{other}\" or remove the key")
     if config.fit_check_every > config.fit_max_steps:
         raise InputError(path, where.get("fit_check_every", where.get("fit_max_steps", "key 'fit.max_steps'")),
                          f"check_every {config.fit_check_every} is more than max_steps {config.fit_max_steps}",

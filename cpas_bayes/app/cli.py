@@ -234,10 +234,10 @@ def synth_command(scenario, effect, magnitude, seed, out):
 @parallel_options(what="ensembles")
 @click.option("--ensembles", type=ENSEMBLES, default=4, show_default=True,
               help="Independent emcee ensembles (R-hat).")
-@click.option("--stop", type=STOP, default="tau", show_default=True,
-              help="When sampling stops: 'tau' when each ensemble is longer than 50 autocorrelation times; 'ess' "
-                   "when every parameter's bulk and tail ESS reach --ess-target and R-hat across ensembles is "
-                   "at most 1.01.")
+@click.option("--stop", type=STOP, default="ess", show_default=True,
+              help="When sampling stops: 'ess' when every parameter's bulk and tail ESS reach --ess-target and "
+                   "R-hat across ensembles is at most 1.01; 'tau' when each ensemble is longer than 50 "
+                   "autocorrelation times.")
 @click.option("--ess-target", type=ESS_TARGETS, default=None,
               help=f"With --stop ess: the bulk and tail ESS every parameter needs [default: {ESS_TARGET}].")
 def fit_command(bundle, out, seed, priors, decay, below_previous, workers, scheduler, ensembles, stop, ess_target):

@@ -33,7 +33,7 @@ DEMO_TESTS = (
 )
 
 DEMO_CONFIG = CampaignConfig(name="demo: six two-Drogue and three three-Main synthetic tests", seed=0,
-                             fit_ensembles=2, fit_max_steps=4000, fit_tau_factor=20.0, diagnose="screen",
+                             fit_ensembles=2, fit_max_steps=4000, fit_ess_target=400, diagnose="screen",
                              montecarlo_runs=10000, compare_runs=1000, pool_draws=4000)
 
 

@@ -59,7 +59,8 @@ def stop_problem(stop, ess_target, ensembles):
     if ess_target is not None and stop != "ess":
         return "--ess-target", "a target of effective sample size applies only with --stop ess"
     if stop == "ess" and ensembles < 2:
-        return "--ensembles", "--stop ess needs 2 or more ensembles: its R-hat compares them"
+        return "--ensembles", ("--stop ess (the default) needs 2 or more ensembles, because its R-hat compares "
+                               "them; give --ensembles 2 or more, or --stop tau")
     return None
 
 
@@ -117,6 +118,7 @@ CONFIG_LIMITS = {
     "fit_max_steps": (int, 100, MAX_STEPS),
     "fit_check_every": (int, 10, 10_000),
     "fit_tau_factor": (float, 0.0, None),
+    "fit_ess_target": (int, 100, 100_000),
     "montecarlo_runs": (int, 1, MAX_RUNS),
     "compare_runs": (int, 1, MAX_RUNS),
     "pool_draws": (int, 100, 1_000_000),

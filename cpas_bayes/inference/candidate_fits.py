@@ -36,7 +36,7 @@ DISCREPANCY = "discrepancy"
 
 # Short fits: the comparison needs ~1,000 nearly independent draws per model,
 # not a memo-grade posterior. Two ensembles still give a nested R-hat.
-DIAGNOSIS_SAMPLER = SamplerOptions(n_ensembles=2, check_every=500, max_steps=2000, tau_factor=10.0,
+DIAGNOSIS_SAMPLER = SamplerOptions(n_ensembles=2, check_every=500, max_steps=2000, stop="tau", tau_factor=10.0,
                                    tau_rtol=0.25, map_starts=2, workers=2, progress=True)
 
 BREATHING_BAND_HZ = (0.1, 3.0)

@@ -18,16 +18,17 @@ Procedure
    one ensemble are not independent chains, so R-hat is the nested R-hat over
    ensembles.
 4. When to stop (``SamplerOptions.stop``, :mod:`cpas_bayes.inference.stopping`):
-   ``"tau"`` -- each ensemble runs in chunks, as its own task, until its chain
-   is longer than 50 integrated autocorrelation times τ and τ has changed by
-   less than 5 % since the last chunk; burn-in = 2·max τ, thin = ½·min τ.
-   ``"ess"`` -- the ensembles advance in lockstep chunks (one task per
-   ensemble and chunk, so the workers stay busy) and stop when every
+   ``"ess"`` (the default) -- the ensembles advance in lockstep chunks (one
+   task per ensemble and chunk, so the workers stay busy) and stop when every
    parameter's rank-normalised bulk and tail ESS reach ``ess_target`` and its
    nested R-hat over ensembles is at most ``rhat_target`` on the draws the fit
    keeps (burn-in half the chain, thin = ½·min τ), and τ has settled (moved
-   less than ``tau_rtol`` since the last chunk); τ is reported. The chain of an ensemble does not depend on the rule, only its
-   length: a chunk continues from the last state and random state either way.
+   less than ``tau_rtol`` since the last chunk); τ is reported.
+   ``"tau"`` -- each ensemble runs in chunks, as its own task, until its chain
+   is longer than ``tau_factor`` (50) integrated autocorrelation times τ and τ
+   has changed by less than 5 % since the last chunk; burn-in = 2·max τ,
+   thin = ½·min τ. The chain of an ensemble does not depend on the rule, only
+   its length: a chunk continues from the last state and random state either way.
 5. Checkpoints: every chunk is appended to an emcee HDF5 backend (by the worker
    under the τ rule, by the main process under the ESS rule); the file is
    rewritten and renamed over the old one, so a kill at any instant leaves the
@@ -67,7 +68,7 @@ class SamplerOptions:
     check_every: int = 500            # steps between convergence checks (and checkpoints)
     max_steps: int = 20000
     store_every: int = 5              # keep every k-th step in the chain file
-    stop: str = "tau"                 # "tau": the τ rule below; "ess": ESS and R-hat targets (module docstring)
+    stop: str = "ess"                 # "ess": ESS and R-hat targets (module docstring); "tau": the τ rule below
     tau_factor: float = 50.0          # τ rule: converged when steps > tau_factor·τ ...
     tau_rtol: float = 0.05            # ... and τ moved less than this since the last check
     ess_target: float = ESS_TARGET    # ESS rule: bulk and tail ESS of every parameter at least this ...
