@@ -52,7 +52,9 @@ def test_whole_chain_in_memory(tmp_path, monkeypatch):
     covered = [np.quantile(post[n].values, 0.05) <= truth[n] <= np.quantile(post[n].values, 0.95) for n in names]
     assert np.mean(covered) >= 0.8, dict(zip(names, covered))
 
+    # one candidate: the chain's hand-over from fit to diagnosis, not the catalogue (tests/test_diagnose.py)
     diagnosis = cb.diagnose_test(test, cb.DiagnoseOptions(seed=0, mode="screen", model_forms=False,
+                                                          candidates=("sensor_lag",),
                                                           sampler=cb.SamplerOptions(seed=0, **OPTIONS)),
                                  reduction=cb.reduce_test(test), baseline_fit=fit)
     assert diagnosis.cause == "none"

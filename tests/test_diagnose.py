@@ -305,7 +305,7 @@ def test_diagnose_command_writes_the_documented_outputs(tmp_path):
     bundle = write_synthetic("drogue", "sensor_lag", 7, tmp_path / "bundle", magnitude=0.05)
     out = tmp_path / "diag"
     code = main(["diagnose", str(bundle), "--out", str(out), "--workers", "1",
-                 "--candidates", "sensor_lag,added_mass,correlated_noise"])
+                 "--candidates", "sensor_lag,friction_drift,correlated_noise"])
     assert code == 0
     doc = json.loads((out / "diagnosis.json").read_text())
     assert doc["cause"] == "sensor_lag" and doc["causes"] == ["sensor_lag"] and doc["verdict"] == "named"

@@ -151,9 +151,11 @@ def test_ctrl_c_stops_a_fit_with_a_resumable_checkpoint_and_says_how_to_resume(t
     bundle = next(p for p in example_bundles() if p.name.startswith("drogue"))
     out = tmp_path / "fit"
     env = dict(os.environ, MPLBACKEND="Agg")
+    # an ESS target the fit cannot reach within its steps keeps it running until the signal comes, however
+    # fast or loaded the machine (the default target can be met a few chunks after the first checkpoint)
     process = subprocess.Popen([sys.executable, "-m", "cpas_bayes.app.cli", "fit", str(bundle), "--out", str(out),
-                                "--workers", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env=env)
+                                "--workers", "2", "--ess-target", "100000"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, env=env)
     _wait_for(out / "checkpoint" / "ensemble_0.h5", process)
     process.send_signal(signal.SIGINT)
     stdout, stderr = process.communicate(timeout=60)
