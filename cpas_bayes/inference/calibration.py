@@ -201,6 +201,9 @@ class ReplicaResult:
     ess_bulk_min: float
     steps: int                    # per ensemble (the longest)
     seconds: float                # the fit, MAP search included
+    rhat: np.ndarray              # (D,) nested R-hat per parameter
+    ess_bulk: np.ndarray          # (D,)
+    ess_tail: np.ndarray          # (D,)
     draws: np.ndarray | None = None   # pooled posterior draws (S, D), when asked for
 
 
@@ -224,11 +227,14 @@ def run_replica(template: TestModel, seed, options: SamplerOptions = SamplerOpti
     chains, _, _ = fit.sampling.stacked()
     draws = chains.reshape(-1, chains.shape[-1])
     diagnostics = fit.summary["diagnostics"]
+    per = [fit.summary["diagnostics_per_parameter"][n] for n in model.names]
     return ReplicaResult(names=list(model.names), truth=truth, ranks=rank_of_truth(draws, truth, n_ranks, rank_rng),
                          covered=interval_coverage(draws, truth, probs), probs=tuple(probs), n_ranks=n_ranks,
                          converged=bool(diagnostics["converged"]), rhat_max=float(diagnostics["rhat_max"]),
                          ess_bulk_min=float(diagnostics["ess_bulk_min"]), steps=int(max(diagnostics["steps"])),
-                         seconds=seconds, draws=draws if keep_draws else None)
+                         seconds=seconds, rhat=np.array([p["rhat"] for p in per]),
+                         ess_bulk=np.array([p["ess_bulk"] for p in per]),
+                         ess_tail=np.array([p["ess_tail"] for p in per]), draws=draws if keep_draws else None)
 
 
 def replica_task(job):
