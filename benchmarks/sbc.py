@@ -262,9 +262,11 @@ def rank_figure(scenario, d, target):
         ranks = d.loc[d["group"] == group, "rank"].to_numpy()
         counts, prob = rank_histogram(ranks, N_RANKS, BINS)
         low, high = uniform_histogram_band(ranks.size, N_RANKS, BINS, level=0.99)
-        ax.fill_between(edges, np.r_[low, low[-1]], np.r_[high, high[-1]], step="post", color="0.85", lw=0)
-        ax.axhline(ranks.size * prob.mean(), color="0.5", lw=0.8)
-        ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color="C0", alpha=0.8, edgecolor="white")
+        ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color="C0", alpha=0.75, edgecolor="white")
+        # the band over the bars (translucent), so that a bin outside it shows on either side
+        ax.fill_between(edges, np.r_[low, low[-1]], np.r_[high, high[-1]], step="post", color="0.4", alpha=0.3,
+                        lw=0, zorder=3)
+        ax.axhline(ranks.size * prob.mean(), color="0.3", lw=0.8, zorder=4)
         p = rank_uniformity(ranks, N_RANKS, BINS)[1]
         ax.set_title(f"{group}\nn={ranks.size}, p={p:.2g}", fontsize=8)
         ax.set_xlim(0, N_RANKS + 1)
