@@ -224,7 +224,8 @@ def scenario_section(scenario, d, figure):
         f"## {scenario.capitalize()} ({len(reps)} replicas, {reps['n_parameters'].iloc[0]} parameters)",
         "",
         f"Replicas not converged (the fit's own verdict): **{len(not_converged)}**"
-        + (f" (replicas {', '.join(map(str, not_converged['replica']))})" if len(not_converged) else "") + ".",
+        + (f" (replica{'s' * (len(not_converged) > 1)} {', '.join(map(str, not_converged['replica']))})"
+           if len(not_converged) else "") + ".",
         f"Seconds per replica (one process each, MAP search included): median {reps['seconds'].median():.0f}, "
         f"mean {reps['seconds'].mean():.0f}, max {reps['seconds'].max():.0f}; steps per ensemble: median "
         f"{reps['steps'].median():.0f}, max {reps['steps'].max():.0f}; max R-hat over replicas "
