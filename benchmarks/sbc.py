@@ -52,13 +52,13 @@ def parameter_groups(model):
     from cpas_bayes.physics.inflation import stage_role, stage_tag
 
     groups = {}
-    for prefix, p in zip(model.chute_prefix, model.parachutes):
-        groups[f"{prefix}.cds_o"] = "cds_o"
-        groups[f"{prefix}.d_o"] = "d_o"
+    for i, p in enumerate(model.parachutes):    # the model's own names (model.parameter_name), None if absent
+        groups[model.parameter_name(i, "cds_o")] = "cds_o"
+        groups[model.parameter_name(i, "d_o")] = "d_o"
         n = len(p.stages)
         for k in range(n):
             for field in FIELDS:
-                groups[f"{prefix}.{stage_tag(k)}.{field}"] = f"{stage_role(k, n)} {field}"
+                groups[model.parameter_name(i, f"{stage_tag(k)}.{field}")] = f"{stage_role(k, n)} {field}"
     return {name: groups.get(name, name) for name in model.names}
 
 
@@ -124,10 +124,12 @@ def run(args):
     complete, kept = done_replicas(path)
     # rewrite the file with complete replicas only: a replica cut short by a kill is redone
     args.out.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
+    tmp = path.with_name(path.name + ".tmp")   # then renamed: a kill now leaves the old file whole
+    with tmp.open("w", newline="") as f:
         writer = csv.DictWriter(f, COLUMNS)
         writer.writeheader()
         writer.writerows(kept)
+    os.replace(tmp, path)
     todo = [(args.scenario, i, SEED_BASE[args.scenario] + i) for i in range(args.replicas) if i not in complete]
     print(f"{args.scenario}: {len(todo)} replicas to run, {len(complete)} already in {path}; "
           f"{args.workers} worker(s), one process per fit", flush=True)
