@@ -218,7 +218,7 @@ def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
                         executor=executor)
         checks = run_checks(fit, rng=config.seed)
         warnings = record_checks(fit, checks, tmp)
-        write_fit_figures(fit, tmp, checks=checks)
+        write_fit_figures(fit, tmp, checks=checks, executor=executor)
         write_json(tmp / "checks.json", check_report(fit, checks=checks))
         write_json(tmp / "map.json", {"names": list(model.names),
                                       "theta": [float(v) for v in fit.sampling.theta_map],

@@ -125,9 +125,11 @@ class SamplingResult:
 
 
 def _moves():
-    """Differential evolution. The snooker variant, meant for multimodal targets, gave no
-    shorter τ on these unimodal posteriors and costs a Python loop per walker."""
-    return [(emcee.moves.DEMove(), 1.0)]
+    """Differential evolution (:mod:`cpas_bayes.inference.moves`). The snooker variant, meant for
+    multimodal targets, gave no shorter τ on these unimodal posteriors and costs a Python loop per walker."""
+    from cpas_bayes.inference.moves import VectorisedDEMove
+
+    return [(VectorisedDEMove(), 1.0)]
 
 
 def _fingerprint(model, init, options):

@@ -520,27 +520,44 @@ def plot_residuals(report):
 # all figures
 
 
-def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0):
+_DRAWERS = {"bands": plot_bands, "loads": plot_loads, "corner": plot_corner, "trace": plot_trace,
+            "ppc": plot_ppc, "loo_pit": plot_loo_pit, "residuals": plot_residuals}
+
+
+def _figure_task(job):
+    """Draw one figure and save it: a task of an executor (``job`` = (drawer, path, args, kwargs))."""
+    drawer, path, args, kwargs = job
+    return _save(_DRAWERS[drawer](*args, **kwargs), path)
+
+
+def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None):
     """Write every figure of a fit into folder ``out``; return their paths.
 
     ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given.
+    ``executor`` (:mod:`cpas_bayes.core.executor`) draws the figures in parallel, one task each (about
+    1 s of matplotlib apiece); the figures do not depend on it: each has its own random stream.
     """
+    from cpas_bayes.core.executor import Executor
+
     out = claim_folder(out)
     rng = np.random.default_rng(rng)
     checks = run_checks(fit, rng=rng) if checks is None else checks
     pred = _band_draws(fit, n_draws, rng)
-    paths = [_save(plot_bands(fit, pred), out / "bands.png"),
-             _save(plot_loads(fit, pred, rng), out / "loads.png")]
+    groups = corner_groups(fit)
+    streams = iter(rng.spawn(len(groups) + 1))
+    jobs = [("bands", out / "bands.png", (fit, pred), {}),
+            ("loads", out / "loads.png", (fit, pred, next(streams)), {})]
     post = fit.tree["posterior"]
-    for pid, k, names in corner_groups(fit):
+    for pid, k, names in groups:
         values = np.column_stack([np.asarray(post[n].values, float).ravel() for n in names])
         short = [n.rsplit(".", 1)[-1] for n in names]
         labels = [f"{s} [{CORNER_UNITS.get(s, '-')}]" for s in short]
         title = (f"{fit.model.test.name}: {pid} stage {k} posterior — narrow, single-peaked clouds mean the "
                  "data pin the parameters; tilted ones show trade-offs")
-        paths.append(_save(plot_corner(values, short, labels, title, rng=rng), inside(out, f"corner_{pid}_s{k}.png")))
-    paths.append(_save(plot_trace(fit, worst_rhat_parameters(fit)), out / "trace.png"))
-    paths.append(_save(plot_ppc(checks.ppc), out / "ppc.png"))
-    paths.append(_save(plot_loo_pit(checks.loo_pit), out / "loo_pit.png"))
-    paths.append(_save(plot_residuals(checks.residuals), out / "residuals.png"))
-    return paths
+        jobs.append(("corner", inside(out, f"corner_{pid}_s{k}.png"), (values, short, labels, title),
+                     {"rng": next(streams)}))
+    jobs += [("trace", out / "trace.png", (fit, worst_rhat_parameters(fit)), {}),
+             ("ppc", out / "ppc.png", (checks.ppc,), {}),
+             ("loo_pit", out / "loo_pit.png", (checks.loo_pit,), {}),
+             ("residuals", out / "residuals.png", (checks.residuals,), {})]
+    return (executor or Executor()).map(_figure_task, jobs, desc="figures", progress=False)
