@@ -17,6 +17,20 @@ Measured (not timed tests):
   term whose MAP rises by > 5 sampled with the discrepancy, forward selection,
   PSIS-LOO, gain, no figures) on the same examples; and in mode screen.
 
+* fit_command_drogue / fit_command_main: wall time of the whole command a user
+  types, ``cpas-bayes fit BUNDLE --out DIR`` (a fresh process: imports, MAP,
+  sampling under the default ESS rule, DataTree, checks and every figure).
+* step_cost: one ensemble of the two-Drogue fit in this process, 2,000 steps
+  from the MAP's ball: time per step, of it the log posterior's, and the rest
+  (the sampler's own bookkeeping), with emcee's DEMove and with the package's
+  vectorised move (the same proposal law; :mod:`cpas_bayes.inference.moves`).
+* campaign: ``--campaign-tests`` (50) synthetic two-Drogue tests (the
+  package's simulator, seeds 5000…, no hidden effect) through the main job
+  with the default campaign options on 2 workers, timed end to end; from the
+  campaign's own step timings, the serial fraction and the efficiency that
+  Amdahl's law predicts for 4, 16 and 64 workers (T(N) = S + max(W/N, the
+  longest test), S the steps that run alone, W the work spread over workers).
+
 * montecarlo_main: 10,000 runs of the three-Main cluster (the bundled example's
   configuration, a memo with the example's ranges) in this process and on 2
   worker processes: runs per second.
@@ -88,6 +102,118 @@ def bench_fit(path):
             "converged": d["converged"], "map_log_post": fit.sampling.log_post_map,
             "nelder_mead": nm, "posterior_over_point_fit": wall / nm["converged_wall_s"],
             "posterior_over_single_nelder_mead": wall / nm["single_wall_s"]}
+
+
+def bench_fit_command(path):
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        command = [sys.executable, "-m", "cpas_bayes", "fit", str(path), "--out", str(Path(tmp) / "fit")]
+        t0 = time.perf_counter()
+        subprocess.run(command, check=True, capture_output=True)
+        wall = time.perf_counter() - t0
+        summary = json.loads((Path(tmp) / "fit" / "summary.json").read_text())
+        figures = len(list((Path(tmp) / "fit").glob("*.png")))
+    d = summary["diagnostics"]
+    return {"test": path.name, "wall_s": wall, "figures": figures, "steps_per_ensemble": d["steps"],
+            "rhat_max": d["rhat_max"], "ess_bulk_min": d["ess_bulk_min"],
+            "summary": f"cpas-bayes fit, whole command: {len(d['steps'])} ensembles of {max(d['steps'])} steps, "
+                       f"{figures} figures, R-hat {d['rhat_max']:.4f}"}
+
+
+def bench_step_cost():
+    import emcee
+
+    from cpas_bayes.inference.moves import VectorisedDEMove
+    from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
+
+    test = read_bundle(next(p for p in example_bundles() if p.name.startswith("drogue")))
+    model = prepare_model(test, reduce_test(test))
+    theta, _ = find_map(model, np.random.default_rng(0), 2)
+    walkers = 2 * model.ndim + 2
+    init = initial_walkers(model, theta, laplace_covariance(model, theta), walkers, np.random.default_rng(1))
+    out = {}
+    for name, move in (("emcee_demove", emcee.moves.DEMove()), ("vectorised_demove", VectorisedDEMove())):
+        spent = [0.0]
+
+        def log_post(x):
+            t = time.perf_counter()
+            value = model(x)
+            spent[0] += time.perf_counter() - t
+            return value
+
+        sampler = emcee.EnsembleSampler(walkers, model.ndim, log_post, vectorize=True, moves=[(move, 1.0)])
+        sampler.run_mcmc(init, 200, progress=False)
+        spent[0] = 0.0
+        t0 = time.perf_counter()
+        sampler.run_mcmc(None, 2000, progress=False, thin_by=5)   # 10,000 steps, every fifth stored
+        wall = time.perf_counter() - t0
+        out[name] = {"step_ms": 1e3 * wall / 10000, "log_posterior_ms": 1e3 * spent[0] / 10000,
+                     "overhead_ms": 1e3 * (wall - spent[0]) / 10000,
+                     "acceptance": float(np.mean(sampler.acceptance_fraction))}
+    a, b = out["emcee_demove"], out["vectorised_demove"]
+    return {**out, "walkers": walkers,
+            "summary": f"per step of {walkers} walkers: log posterior {b['log_posterior_ms']:.2f} ms; sampler "
+                       f"overhead {a['overhead_ms']:.2f} ms with emcee's DEMove, {b['overhead_ms']:.2f} ms "
+                       f"vectorised (acceptance {a['acceptance']:.3f} / {b['acceptance']:.3f})"}
+
+
+def amdahl(steps, wall, workers):
+    """Serial fraction and predicted efficiency from a campaign's step records (campaign.json "steps").
+
+    S: the pool step (it runs alone) plus the wall time no step accounts for (validation, report, the
+    hand-offs); W: the per-test and Monte Carlo / comparison steps, spread over the workers. T(N) = S +
+    max(W/N, the longest single test), T(1) = S + W, efficiency T(1)/(N·T(N)).
+    """
+    per_test, spread, pooled = {}, 0.0, 0.0
+    for r in steps:
+        if r["name"] == "pool":
+            pooled += r["seconds"]
+            continue
+        spread += r["seconds"]
+        if r["name"].endswith((" reduction", " fit", " diagnosis")):
+            test = r["name"].rsplit(" ", 1)[0]
+            per_test[test] = per_test.get(test, 0.0) + r["seconds"]
+    serial = pooled + max(0.0, wall - pooled - spread / workers)
+    longest = max(per_test.values(), default=0.0)
+    t1 = serial + spread
+    predicted = {n: t1 / (n * (serial + max(spread / n, longest))) for n in (4, 16, 64)}
+    return {"serial_s": serial, "spread_s": spread, "pool_s": pooled, "longest_test_s": longest,
+            "serial_fraction": serial / t1, "predicted_efficiency": predicted}
+
+
+def bench_campaign(n_tests):
+    import tempfile
+
+    from cpas_bayes.app.campaign import CampaignConfig, run_campaign
+    from cpas_bayes.data.bundle_write import write_bundle
+    from cpas_bayes.data.synth import synthesize
+
+    with tempfile.TemporaryDirectory() as tmp:
+        bundles = Path(tmp) / "bundles"
+        for i in range(n_tests):
+            test, _ = synthesize("drogue", "none", 5000 + i, name=f"BENCH-D{i + 1:02d}")
+            write_bundle(test, bundles / test.name)
+        config = CampaignConfig(workers=2)
+        t0 = time.perf_counter()
+        run_campaign(bundles, Path(tmp) / "out", config, echo=lambda *a: None)
+        wall = time.perf_counter() - t0
+        manifest = json.loads((Path(tmp) / "out" / "campaign.json").read_text())
+    steps = manifest["steps"]
+    by_kind = {}
+    for r in steps:
+        kind = r["name"].rsplit(" ", 1)[-1] if r["name"] != "pool" else "pool"
+        kind = "montecarlo" if r["name"].startswith("Monte Carlo") else kind
+        by_kind[kind] = by_kind.get(kind, 0.0) + r["seconds"]
+    law = amdahl(steps, wall, config.workers)
+    eff = law["predicted_efficiency"]
+    return {"tests": n_tests, "workers": config.workers, "diagnose": config.diagnose, "wall_s": wall,
+            "per_test_s": wall / n_tests, "step_seconds": by_kind, **law,
+            "summary": f"{n_tests} two-Drogue tests, default options on {config.workers} workers: "
+                       f"{wall / n_tests:.1f} s per test; serial fraction {100 * law['serial_fraction']:.1f} %, "
+                       f"predicted efficiency {100 * eff[4]:.0f} / {100 * eff[16]:.0f} / {100 * eff[64]:.0f} % "
+                       "on 4 / 16 / 64 workers"}
 
 
 def bench_diagnose(path, mode):
@@ -189,9 +315,15 @@ def bench_parallel():
                        f"100,000 Monte Carlo runs {100 * mc_eff:.0f} %"}
 
 
+CAMPAIGN_TESTS = 50
+
 BENCHES = {
     "fit_drogue": lambda: bench_fit(next(p for p in example_bundles() if p.name.startswith("drogue"))),
     "fit_main": lambda: bench_fit(next(p for p in example_bundles() if p.name.startswith("main"))),
+    "fit_command_drogue": lambda: bench_fit_command(next(p for p in example_bundles()
+                                                         if p.name.startswith("drogue"))),
+    "fit_command_main": lambda: bench_fit_command(next(p for p in example_bundles() if p.name.startswith("main"))),
+    "step_cost": bench_step_cost,
     "diagnose_drogue": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("drogue")),
                                               "full"),
     "diagnose_main": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("main")), "full"),
@@ -199,20 +331,37 @@ BENCHES = {
                                                    "screen"),
     "montecarlo_main": bench_montecarlo,
     "parallel": bench_parallel,
+    "campaign": lambda: bench_campaign(CAMPAIGN_TESTS),
 }
+
+
+def _write_json(path, results):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(results, indent=2, default=float) + "\n")
+    tmp.replace(path)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results.json"))
     parser.add_argument("--only", default=",".join(BENCHES), help="comma-separated subset of " + ", ".join(BENCHES))
+    parser.add_argument("--campaign-tests", type=int, default=CAMPAIGN_TESTS,
+                        help="tests in the campaign benchmark (default %(default)s)")
     args = parser.parse_args(argv)
+    unknown = [n for n in args.only.split(",") if n not in BENCHES]
+    if unknown:
+        parser.error(f"unknown benchmark {unknown[0]!r}; choose from {', '.join(BENCHES)}")
+    if args.campaign_tests < 1:
+        parser.error("--campaign-tests must be at least 1")
+    BENCHES["campaign"] = lambda: bench_campaign(args.campaign_tests)
     results = json.loads(args.out.read_text()) if args.out.is_file() else {}
     results["machine"] = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": sys.version.split()[0],
                           "cpas_bayes": __version__}
     for name in args.only.split(","):
         print(f"running {name} ...", flush=True)
         results[name] = BENCHES[name]()
+        _write_json(args.out, results)   # after each: a long run interrupted keeps what it measured
     print(f"\n{'benchmark':<22} {'wall [s]':>9}  notes")
     for name, r in results.items():
         if name == "machine":
@@ -227,8 +376,7 @@ def main(argv=None):
             print(f"{name:<22} {r['wall_s']:9.1f}  {r['summary']}")
         else:
             print(f"{name:<22} {'':>9}  {r['summary']}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=2, default=float) + "\n")
+    _write_json(args.out, results)
     print(f"\nwrote {args.out}")
     return 0
 
