@@ -21,9 +21,10 @@ What this class changes is only how the step is computed, not the chain's law:
   array; a NaN log posterior is rejected, as the comparison rejects it in
   emcee).
 
-Measured on the two-Drogue example (60 walkers, 29 parameters): emcee's
-overhead per step 0.33 ms beside 0.43 ms of log posterior; see
-``benchmarks/stopping.md`` for the figures after.
+Measured on the two-Drogue example (60 walkers, 29 parameters; ``python
+benchmarks/run.py --only step_cost``): beside 0.42 ms of log posterior per
+step, the sampler's own work is 0.31 ms with emcee's DEMove and 0.20 ms with
+this move, at the same acceptance (0.243 / 0.238).
 """
 
 from __future__ import annotations
