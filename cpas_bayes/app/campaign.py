@@ -509,7 +509,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
         from cpas_bayes.outputs.memo import write_pool
         from cpas_bayes.population.pool import pool_folders
 
-        result = pool_folders([pool_sources[t.name] for t in tests], seed=config.seed, n_draws=config.pool_draws)
+        result = pool_folders([pool_sources[t.name] for t in tests], seed=config.seed, n_draws=config.pool_draws,
+                              executor=executor)
         write_pool(result, tmp, provenance={"campaign": str(folder), "tests": [t.name for t in tests],
                                             "fits": {k: str(v.relative_to(out)) for k, v in pool_sources.items()}})
     echo("memo:")

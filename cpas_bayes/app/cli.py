@@ -387,7 +387,8 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
 @click.argument("fitdirs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @out_option("Memo folder: memo.toml, memo_draws.csv, memo.md and figures.", required=True)
 @seed_option("Seed of the subsampling, hyper-posterior and population-predictive draws.")
-def pool_command(fitdirs, out, seed):
+@parallel_options(what="fit-folder loads and kind/stage/parameter selections")
+def pool_command(fitdirs, out, seed, workers, scheduler):
     """Pool fitted tests into population dispersions: the model memo.
 
     Per parachute kind and stage: n_p, n, expopen, ck, tk, eps and cd_o get a
@@ -403,7 +404,8 @@ def pool_command(fitdirs, out, seed):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PoolWarning)
-        result = pool_folders(fitdirs, seed=seed)
+        with _executor(workers, scheduler) as executor:
+            result = pool_folders(fitdirs, seed=seed, executor=executor)
         paths = write_pool(result, out)
     for w in caught:
         if issubclass(w.category, PoolWarning):

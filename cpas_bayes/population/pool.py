@@ -321,8 +321,18 @@ def _clip_to(x, bounds):
     return np.clip(x, bounds[0], bounds[1])
 
 
+def _selection_task(job):
+    """One kind/stage/parameter's family selection (a task of an executor): (selection, its warnings)."""
+    data, candidates, bounds, scales, seed, n_draws, ess_min = job
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        selection = select_family(data, None, candidates, np.random.default_rng(seed), bounds=bounds,
+                                  hyper_scale=scales, n_draws=n_draws, ess_min=ess_min)
+    return selection, [(w.category, str(w.message)) for w in caught]
+
+
 def pool_fits(records, rng, *, n_draws=10000, max_samples=500, ess_min=ESS_MIN, min_tests=2, correlate=True,
-              families=None) -> PoolResult:
+              families=None, executor=None) -> PoolResult:
     """Pool fitted tests into population distributions.
 
     ``records``: :class:`~cpas_bayes.inference.fit_folder.FitRecord` (from
@@ -338,7 +348,13 @@ def pool_fits(records, rng, *, n_draws=10000, max_samples=500, ess_min=ESS_MIN, 
     enter the reweighting sums; ``n_draws`` population-predictive draws per
     kind become memo_draws.csv rows. Entries with fewer than ``min_tests``
     tests are skipped (listed in ``skipped``, with a warning).
+
+    ``executor`` (:mod:`cpas_bayes.core.executor`) runs the kind/stage/parameter
+    selections, which are independent, as tasks; each has its own random stream
+    drawn from ``rng`` in key order, so the result does not depend on it.
     """
+    from cpas_bayes.core.executor import Executor
+
     records = [r if isinstance(r, FitRecord) else FitRecord.from_fit(r) for r in records]
     if not records:
         raise InputError("(no folders)", "", "no fits to pool", "pass at least two fit folders")
@@ -354,6 +370,7 @@ def pool_fits(records, rng, *, n_draws=10000, max_samples=500, ess_min=ESS_MIN, 
     groups, tfp = _gather(records, rng, max_samples)
     notes, skipped = [], []
     entries, pairs, peak = {}, {}, {}
+    jobs, keys = [], []
     for key in sorted(groups):
         kind, stage, param = key
         by_test = groups[key]
@@ -362,12 +379,17 @@ def pool_fits(records, rng, *, n_draws=10000, max_samples=500, ess_min=ESS_MIN, 
             continue
         units = [u for us in by_test.values() for u in us]
         support = _support_union(units)
-        data = _stack(by_test, tests_order)
         cands = families or _families_for(param)
         fam_bounds = {name: (0.0, 1.0) if name == "beta" else support for name in cands}
         s0 = {name: _prior_width(units[0].prior, make_family(name, *fam_bounds[name])) for name in cands}
-        selection = select_family(data, None, cands, rng, bounds=fam_bounds, hyper_scale=s0, n_draws=n_draws,
-                                  ess_min=ess_min)
+        jobs.append((_stack(by_test, tests_order), cands, fam_bounds, s0, int(rng.integers(2**63 - 1)), n_draws,
+                     ess_min))
+        keys.append((key, support))
+    selections = (executor or Executor()).map(_selection_task, jobs, desc="pool", progress=False)
+    for ((kind, stage, param), support), (selection, caught) in zip(keys, selections):
+        key, by_test = (kind, stage, param), groups[(kind, stage, param)]
+        for category, message in caught:
+            warnings.warn(message, category, stacklevel=2)
         chosen = selection.pool
         label = f"{kind}.{stage}.{param}"
         if chosen.low_ess:
@@ -459,7 +481,11 @@ def pool_fits(records, rng, *, n_draws=10000, max_samples=500, ess_min=ESS_MIN, 
 # fit folders in
 
 
-def pool_folders(folders, seed=0, **kwargs) -> PoolResult:
-    """Load fit folders (refusing clearly any that is not one) and pool them."""
-    records = [load_fit(Path(f)) for f in folders]
-    return pool_fits(records, np.random.default_rng(seed), **kwargs)
+def pool_folders(folders, seed=0, executor=None, **kwargs) -> PoolResult:
+    """Load fit folders (refusing clearly any that is not one) and pool them.
+
+    ``executor`` loads the folders and runs the selections as tasks (see :func:`pool_fits`)."""
+    from cpas_bayes.core.executor import Executor
+
+    records = (executor or Executor()).map(load_fit, [Path(f) for f in folders], desc="fit folders", progress=False)
+    return pool_fits(records, np.random.default_rng(seed), executor=executor, **kwargs)
