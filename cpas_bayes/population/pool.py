@@ -386,8 +386,9 @@ def pool_fits(records, rng, *, n_draws=10000, max_samples=500, ess_min=ESS_MIN, 
                      ess_min))
         keys.append((key, support))
     selections = (executor or Executor()).map(_selection_task, jobs, desc="pool", progress=False)
-    for ((kind, stage, param), support), (selection, caught) in zip(keys, selections):
-        key, by_test = (kind, stage, param), groups[(kind, stage, param)]
+    for (key, support), (selection, caught) in zip(keys, selections):
+        kind, stage, param = key
+        by_test = groups[key]
         for category, message in caught:
             warnings.warn(message, category, stacklevel=2)
         chosen = selection.pool
