@@ -9,11 +9,11 @@ running command left behind (exit status 130).
 from __future__ import annotations
 
 import os
-import signal
 import traceback
 
 import click
 
+from cpas_bayes.core import interrupts
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.ownership import output_error
 
@@ -43,23 +43,17 @@ def _select_backend():
         matplotlib.use("Agg")
 
 
-def _sigterm_as_interrupt(signum, frame):
-    raise KeyboardInterrupt  # SIGTERM (kill, a batch system's stop) ends a command as Ctrl-C does
-
-
 def run_cli(group, argv=None):
-    """Run the click ``group`` on ``argv``, turning bad input into one clear message; the exit status."""
+    """Run the click ``group`` on ``argv``, turning bad input into one clear message; the exit status.
+
+    SIGTERM (kill, a batch system's stop) ends a command as Ctrl-C does, and an
+    interrupt that lands where Python drops exceptions still ends it
+    (:mod:`cpas_bayes.core.interrupts`).
+    """
     _select_backend()
     _INTERRUPTED[0] = _NOTHING_HALF_WRITTEN
-    try:
-        previous = signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    except ValueError:  # not the main thread: signals stay as they are
-        previous = None
-    try:
+    with interrupts.catching():
         return _run(group, argv)
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
 
 
 def _run(group, argv):

@@ -47,6 +47,8 @@ import sys
 import time
 from urllib.parse import urlsplit
 
+from cpas_bayes.core.interrupts import raise_if_requested
+
 CONNECT_TIMEOUT = 5.0                      # s, for a Dask scheduler to answer
 SCHEDULER_PROTOCOLS = ("tcp", "tls", "ws", "wss")
 DEFAULT_SCHEDULER_PORT = 8786              # Dask's
@@ -212,6 +214,7 @@ class Executor:
         out = []
         with _progress_bar(len(items), desc, progress) as bar:
             for item in items:
+                raise_if_requested()
                 out.append(fn(item, on_report) if on_report is not None else fn(item))
                 bar.update(1)
         return out
@@ -322,6 +325,7 @@ class ProcessExecutor(Executor):
                 while done < len(futures):
                     # a short wait keeps Ctrl-C and the messages responsive
                     finished, _ = wait(futures, timeout=0.2, return_when=FIRST_EXCEPTION)
+                    raise_if_requested()
                     if reporting:
                         self._drain(on_report, open_tasks)
                     if any(f.exception() is not None for f in finished):
@@ -402,8 +406,6 @@ class DaskExecutor(Executor):
         self.workers = max(1, len(self.client.scheduler_info()["workers"]))
 
     def map(self, fn, items, desc="tasks", progress=None, on_report=None):
-        from distributed import as_completed
-
         items = list(items)
         if not items:
             return []
@@ -412,8 +414,15 @@ class DaskExecutor(Executor):
         futures = self.client.map(target, args, pure=False)
         try:
             with _progress_bar(len(items), desc, progress) as bar:
-                for _ in as_completed(futures):
-                    bar.update(1)
+                done = 0
+                while True:
+                    finished = sum(f.done() for f in futures)  # the futures' local state: no scheduler call
+                    bar.update(finished - done)
+                    done = finished
+                    if done == len(futures) or any(f.status == "error" for f in futures):
+                        break  # gather returns the results or raises the task's error
+                    time.sleep(0.05)  # a short wait keeps Ctrl-C responsive
+                    raise_if_requested()
             return self.client.gather(futures)
         except BaseException:
             self.client.cancel(futures)

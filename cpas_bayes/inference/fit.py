@@ -52,6 +52,7 @@ import numpy as np
 
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import atomic_path
+from cpas_bayes.core.interrupts import raise_if_requested
 from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
 from cpas_bayes.inference.stopping import (ESS_TARGET, RHAT_TARGET, STOP_RULES, burn_and_thin, ess_check,
                                            integrated_time, pool_kept)
@@ -288,6 +289,7 @@ def run_ensemble(model, init, seed, options: SamplerOptions, checkpoint=None, la
         store = _EnsembleStore(model, init, seed, options, checkpoint)
         tau_prev, stopped = _replay(store, options)
         while stopped is None:
+            raise_if_requested()  # between chunks: the checkpoint is complete
             steps, chain, log_prob, acceptance = store.advance()
             tau, converged, stop = _check(chain, steps, tau_prev, options)
             if stop:
@@ -402,6 +404,7 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
         stores = [_EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
         end, tau_prev = 0, None
         while True:
+            raise_if_requested()  # between chunks: every checkpoint is complete
             end += per_chunk
             behind = [st for st in stores if st.stored < end]
             jobs = [(model, st.next_state(), end - st.stored, options.store_every) for st in behind]
