@@ -289,6 +289,9 @@ def ensure_folder(path) -> Marker | None:
     path through a file raises ``NotADirectoryError``.
     """
     path = Path(path)
+    # is_dir() after lexists(): another process (a fit's other ensemble) may make the folder in between
+    if os.path.lexists(path) and not path.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, "a file is in the way of a folder", str(path))
     if path.is_dir():
         marker = read_marker(path)
         if marker is None and path.parent != path:
@@ -296,8 +299,6 @@ def ensure_folder(path) -> Marker | None:
             with _folder_lock(path.parent):
                 marker = read_marker(path)
         return marker
-    if os.path.lexists(path):
-        raise NotADirectoryError(errno.ENOTDIR, "a file is in the way of a folder", str(path))
     parent_marker = ensure_folder(path.parent)
     with _folder_lock(path.parent):
         if parent_marker is not None:
@@ -307,6 +308,8 @@ def ensure_folder(path) -> Marker | None:
         except FileExistsError:
             if not path.is_dir():
                 raise NotADirectoryError(errno.ENOTDIR, "a file is in the way of a folder", str(path)) from None
+            if read_marker(path) is not None:  # made by another process of ours just before we held the lock
+                return read_marker(path)
         new_marker(path, CREATED)
     return read_marker(path)
 
