@@ -111,8 +111,10 @@ def _toy(n_ensembles=4, walkers=8):
     return Correlated(), inits, list(range(1, n_ensembles + 1))
 
 
-def _ess_options(target, **kw):
-    return SamplerOptions(stop="ess", ess_target=target, check_every=100, store_every=1, max_steps=20000, **kw)
+def _ess_options(target, proposal="de", **kw):
+    """The ESS rule's mechanics on DE alone (chunks of one kernel), unless a test asks for the adaptive proposal."""
+    return SamplerOptions(stop="ess", ess_target=target, check_every=100, store_every=1, max_steps=20000,
+                          proposal=proposal, **kw)
 
 
 def test_an_easy_target_stops_earlier_than_a_hard_one():
@@ -128,7 +130,7 @@ def test_an_easy_target_stops_earlier_than_a_hard_one():
     assert hard[0].burn == hard[0].steps // 2
     # a target out of reach runs to the step limit and says it did not converge
     capped, _ = run_ensembles(model, inits, seeds, SamplerOptions(stop="ess", ess_target=10**6, check_every=100,
-                                                                  store_every=1, max_steps=500))
+                                                                  store_every=1, max_steps=500, proposal="de"))
     assert capped[0].steps == 500 and not capped[0].converged
 
 
@@ -145,19 +147,21 @@ def test_the_ess_rule_draws_the_tau_rules_chain(tmp_path):
         np.testing.assert_array_equal(a["mcmc"]["chain"][...], b["mcmc"]["chain"][...])
 
 
-def test_an_interrupted_ess_run_resumes_to_the_same_draws(tmp_path):
-    """A kill mid-round leaves ensembles at different chunks; the rerun catches up, replays the checks and
-    ends with the draws of an uninterrupted run."""
+@pytest.mark.parametrize("proposal", ["de", "adaptive"])
+def test_an_interrupted_ess_run_resumes_to_the_same_draws(tmp_path, proposal):
+    """A kill mid-round leaves ensembles at different chunks; the rerun catches up, replays the checks (and
+    refits the adaptive proposal from the same stored draws) and ends with the draws of an uninterrupted run."""
     model, inits, seeds = _toy()
-    options = _ess_options(1500)
+    options = _ess_options(1500 if proposal == "de" else 15000, proposal=proposal)
     uninterrupted, seen = run_ensembles(model, inits, seeds, options)
     ckpts = [tmp_path / f"ensemble_{e}.h5" for e in range(4)]
-    part = SamplerOptions(stop="ess", ess_target=1500, check_every=100, store_every=1, max_steps=300)
+    part = SamplerOptions(stop="ess", ess_target=options.ess_target, check_every=100, store_every=1, max_steps=300,
+                          proposal=proposal)
     run_ensembles(model, inits, seeds, part, checkpoints=ckpts)
     shorter = tmp_path / "shorter"
     shorter.mkdir()
     run_ensembles(model, inits[:2], seeds[:2], SamplerOptions(stop="ess", check_every=100, store_every=1,
-                                                               max_steps=100),
+                                                               max_steps=100, proposal=proposal),
                   checkpoints=[shorter / "a.h5", shorter / "b.h5"])
     (shorter / "b.h5").replace(ckpts[1])      # ensemble 1 one chunk behind the others, as a kill leaves it
     resumed, seen_resumed = run_ensembles(model, inits, seeds, options, checkpoints=ckpts)
@@ -169,7 +173,30 @@ def test_an_interrupted_ess_run_resumes_to_the_same_draws(tmp_path):
         np.testing.assert_array_equal(a.tau, b.tau)
 
 
+def test_the_adaptive_proposal_cuts_tau_and_samples_the_same_target():
+    """After its warm-up (one DE chunk, two adaptation chunks) the independence proposal fitted to each
+    ensemble's own draws leaves τ at a few steps where DE alone needs about twelve; the kept draws come
+    after the warm-up and recover the target's covariance; a run too short for the warm-up uses DE alone."""
+    model, inits, seeds = _toy(walkers=12)
+    de, _ = run_ensembles(model, inits, seeds, _ess_options(2000))
+    adaptive, seen = run_ensembles(model, inits, seeds, _ess_options(2000, proposal="adaptive"))
+    assert np.max([r.tau for r in adaptive]) < np.min([np.max(r.tau) for r in de]) / 3
+    assert seen["proposal"] == "adaptive" and seen["ess_bulk_min"] >= 2000 and seen["rhat_max"] <= 1.01
+    assert all(r.burn >= 200 for r in adaptive)                          # warm-up 100 + 2·50 steps dropped
+    flat = np.concatenate([r.draws.reshape(-1, 3) for r in adaptive])
+    truth = np.linalg.inv(model.precision)
+    np.testing.assert_allclose(np.cov(flat.T), truth, atol=0.08)
+    assert np.all(np.abs(flat.mean(axis=0)) < 0.06)
+    short, _ = run_ensembles(model, inits, seeds, SamplerOptions(stop="ess", ess_target=10**6, check_every=100,
+                                                                 store_every=1, max_steps=200, proposal="adaptive"))
+    plain, _ = run_ensembles(model, inits, seeds, SamplerOptions(stop="ess", ess_target=10**6, check_every=100,
+                                                                 store_every=1, max_steps=200, proposal="de"))
+    np.testing.assert_array_equal(short[0].draws, plain[0].draws)
+
+
 def test_options_refuse_an_unknown_rule_or_target():
+    with pytest.raises(ValueError, match="proposal must be one of"):
+        SamplerOptions(proposal="hmc")
     with pytest.raises(ValueError, match="stop must be one of"):
         SamplerOptions(stop="rhat")
     with pytest.raises(ValueError, match="ess_target"):

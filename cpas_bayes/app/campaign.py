@@ -490,6 +490,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
             fit_opts["below_previous"] = config.below_previous
         if config.fit_stop != "tau":   # fits of the τ rule, the only rule before the ESS rule, keep their keys
             fit_opts.update(fit_stop=config.fit_stop, fit_ess_target=config.fit_ess_target)
+            if config.fit_proposal != "de":  # fits of DE alone, the only proposal before, keep their keys
+                fit_opts["fit_proposal"] = config.fit_proposal
         fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
         if config.diagnose != "off":
             diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.inputs import did_you_mean, read_toml
-from cpas_bayes.inference.fit import SamplerOptions
+from cpas_bayes.inference.fit import PROPOSALS, SamplerOptions
 from cpas_bayes.inference.stopping import ESS_TARGET, STOP_RULES
 from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
 from cpas_bayes.stats.model_terms import EXTENSIONS
@@ -35,6 +35,7 @@ class CampaignConfig:
     fit_ess_target: int = ESS_TARGET
     fit_tau_factor: float = 50.0
     fit_check_every: int = 500
+    fit_proposal: str = "adaptive"        # ESS rule: "adaptive" (independence move after a warm-up) or "de"
     workers: int = 2
     diagnose: str = "screen"              # "screen", "full" or "off"
     candidates: tuple = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
@@ -46,7 +47,7 @@ class CampaignConfig:
     def sampler(self) -> SamplerOptions:
         return SamplerOptions(seed=self.seed, n_ensembles=self.fit_ensembles, max_steps=self.fit_max_steps,
                               stop=self.fit_stop, ess_target=self.fit_ess_target, tau_factor=self.fit_tau_factor,
-                              check_every=self.fit_check_every, workers=self.workers)
+                              check_every=self.fit_check_every, workers=self.workers, proposal=self.fit_proposal)
 
 
 # TOML layout: top-level keys and tables mapping onto CampaignConfig fields.
@@ -54,7 +55,8 @@ _TOML_KEYS = {
     (): {"name": "name", "seed": "seed", "priors": "priors", "decay": "decay", "below_previous": "below_previous",
          "workers": "workers"},
     ("fit",): {"ensembles": "fit_ensembles", "max_steps": "fit_max_steps", "stop": "fit_stop",
-               "ess_target": "fit_ess_target", "tau_factor": "fit_tau_factor", "check_every": "fit_check_every"},
+               "ess_target": "fit_ess_target", "tau_factor": "fit_tau_factor", "check_every": "fit_check_every",
+               "proposal": "fit_proposal"},
     ("diagnose",): {"mode": "diagnose", "candidates": "candidates", "model_forms": "model_forms"},
     ("montecarlo",): {"runs": "montecarlo_runs"},
     ("compare",): {"runs": "compare_runs"},
@@ -78,6 +80,7 @@ ess_target = 1000             # 100–100,000
 # stop = "tau"                # or: converged when longer than tau_factor·τ
 # tau_factor = 50             # only with stop = "tau"
 check_every = 500             # steps between convergence checks and checkpoints (10–10,000)
+proposal = "adaptive"         # with stop = "ess": an independence move fitted after a warm-up; "de": DE alone
 
 [diagnose]
 mode = "screen"               # "screen" (MAP screen, then sample), "full", "off"
@@ -143,6 +146,8 @@ def load_config(path) -> CampaignConfig:
             problem = f"{value!r:.40} is not true or false"
         elif name == "decay" and value not in DECAY_SHAPES:
             problem = f"{value!r:.40}{did_you_mean(str(value), DECAY_SHAPES)} is not one of {_quoted(DECAY_SHAPES)}"
+        elif name == "fit_proposal" and value not in PROPOSALS:
+            problem = f"{value!r:.40}{did_you_mean(str(value), PROPOSALS)} is not one of {_quoted(PROPOSALS)}"
         elif name == "fit_stop" and value not in STOP_RULES:
             problem = f"{value!r:.40}{did_you_mean(str(value), STOP_RULES)} is not one of {_quoted(STOP_RULES)}"
         elif name == "below_previous" and value not in BELOW_PREVIOUS_RULES:

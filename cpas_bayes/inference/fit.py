@@ -11,12 +11,20 @@ Procedure
    same way) shapes the walkers' initial ball: N(MAP, Σ), redrawn where
    the prior is zero. Starting at the posterior's own width (not a tiny ball) spares
    the thousands of steps an ensemble needs to expand.
-3. ``n_ensembles`` independent emcee ensembles (differential-evolution moves,
-   80 % DE / 20 % snooker, which mix far better than the stretch move in 30–40
-   dimensions), each with its own random state (``sampler.random_state`` from
-   the ensemble's seed; numpy's global generator is never touched). Walkers of
-   one ensemble are not independent chains, so R-hat is the nested R-hat over
-   ensembles.
+3. ``n_ensembles`` independent emcee ensembles, each with its own random
+   state (``sampler.random_state`` from the ensemble's seed; numpy's global
+   generator is never touched). Walkers of one ensemble are not independent
+   chains, so R-hat is the nested R-hat over ensembles. Moves
+   (:mod:`cpas_bayes.inference.moves`): differential evolution, which mixes far
+   better than the stretch move in 30–40 dimensions but, on these near-normal
+   posteriors, only at the random-walk rate (τ ≈ D/0.3 steps: 90 for a
+   two-Drogue test, 140 for a three-Main one, whatever the coordinates; measured
+   alike in log coordinates). Under the ESS rule with ``proposal="adaptive"``
+   (the default) each ensemble then fits a multivariate-t independence proposal
+   to its own draws and mixes it in (70 %), which leaves τ at 5–20 steps
+   (:func:`_schedule`): one DE chunk of warm-up, two adaptation chunks, then the
+   proposal frozen, the warm-up dropped and the ESS rule run on the rest. The
+   τ rule keeps DE alone (its 50 τ criterion is for one kernel from the start).
 4. When to stop (``SamplerOptions.stop``, :mod:`cpas_bayes.inference.stopping`):
    ``"ess"`` (the default) -- the ensembles advance in lockstep chunks (one
    task per ensemble and chunk, so the workers stay busy) and stop when every
@@ -59,6 +67,9 @@ from cpas_bayes.inference.stopping import (ESS_TARGET, RHAT_TARGET, STOP_RULES, 
 from cpas_bayes.stats.model import TestModel
 
 
+PROPOSALS = ("de", "adaptive")
+
+
 @dataclass(frozen=True)
 class SamplerOptions:
     """Knobs of the sampler; defaults suit a two-Drogue or three-Main test."""
@@ -74,6 +85,7 @@ class SamplerOptions:
     tau_rtol: float = 0.05            # ... and τ moved less than this since the last check
     ess_target: float = ESS_TARGET    # ESS rule: bulk and tail ESS of every parameter at least this ...
     rhat_target: float = RHAT_TARGET  # ... and its R-hat at most this
+    proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (_schedule); "de" alone
     map_starts: int = 4
     workers: int = 2
     progress: bool = True
@@ -81,6 +93,8 @@ class SamplerOptions:
     def __post_init__(self):
         if self.stop not in STOP_RULES:
             raise ValueError(f"stop must be one of {', '.join(STOP_RULES)}, not {self.stop!r}")
+        if self.proposal not in PROPOSALS:
+            raise ValueError(f"proposal must be one of {', '.join(PROPOSALS)}, not {self.proposal!r}")
         if not self.ess_target > 0 or not self.rhat_target > 1:
             raise ValueError(f"ess_target must be positive and rhat_target above 1, not {self.ess_target!r} and "
                              f"{self.rhat_target!r}")
@@ -125,19 +139,23 @@ class SamplingResult:
 # ensembles
 
 
-def _moves():
-    """Differential evolution (:mod:`cpas_bayes.inference.moves`). The snooker variant, meant for
-    multimodal targets, gave no shorter τ on these unimodal posteriors and costs a Python loop per walker."""
-    from cpas_bayes.inference.moves import VectorisedDEMove
+def _moves(proposal=None):
+    """Differential evolution (:mod:`cpas_bayes.inference.moves`), mixed with the adaptive independence
+    move once a proposal is fitted. The snooker variant, meant for multimodal targets, gave no shorter τ on
+    these unimodal posteriors and costs a Python loop per walker."""
+    from cpas_bayes.inference.moves import ensemble_moves
 
-    return [(VectorisedDEMove(), 1.0)]
+    return ensemble_moves(proposal)
 
 
 def _fingerprint(model, init, options):
     h = hashlib.sha256()
     h.update(json.dumps(model.names).encode())
     h.update(np.ascontiguousarray(init).tobytes())
-    h.update(json.dumps([options.seed, options.store_every]).encode())
+    key = [options.seed, options.store_every]
+    if options.proposal != "de" and options.stop == "ess":  # the adaptive chain depends on its chunks too
+        key += [options.proposal, options.check_every]
+    h.update(json.dumps(key).encode())
     return h.hexdigest()[:16]
 
 
@@ -379,51 +397,100 @@ def _chunk_task(job):
     """Advance one ensemble from a state by ``n_stored`` stored steps: (chain, log_prob, accepted, random state).
 
     The same steps as continuing one sampler: emcee takes the walkers, their log posterior and its random
-    state from the :class:`emcee.State`, and the moves hold no state of their own.
+    state from the :class:`emcee.State`, and the moves hold no state of their own (the independence
+    proposal, if any, is fixed for the chunk).
     """
-    model, (coords, log_prob, random_state), n_stored, store_every = job
-    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves())
+    model, (coords, log_prob, random_state), n_stored, store_every, proposal = job
+    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves(proposal))
     sampler.run_mcmc(emcee.State(coords, log_prob=log_prob, random_state=random_state), n_stored,
                      thin_by=store_every, progress=False)
     b = sampler.backend
     return b.get_chain(), b.get_log_prob(), b.accepted.copy(), sampler.random_state
 
 
+def _schedule(options):
+    """The lockstep chunks (stored steps): (ends of every chunk, warm-up length, {chunk start: window}).
+
+    ``options.proposal == "de"``: chunks of ``check_every`` steps, no warm-up beyond the ESS rule's burn-in.
+    ``"adaptive"``: a warm-up of one differential-evolution chunk of ``check_every`` steps and two
+    adaptation chunks of half that, each with the independence proposal fitted to the ensemble's draws of
+    the window before it ([C/2, C), then the first adaptation chunk); then chunks of half ``check_every``
+    with the proposal frozen at its fit to the second adaptation chunk. The warm-up's draws are dropped
+    and the ESS rule runs on what follows, so every kept draw comes from one fixed kernel.
+    """
+    full = max(1, options.check_every // options.store_every)
+    half = max(1, full // 2)
+    warm = full + 2 * half
+    if options.proposal == "de" or options.max_steps < (warm + half) * options.store_every:
+        return (lambda k: (k + 1) * full), 0, {}   # (a run too short for the warm-up: DE alone)
+    windows = {full: (full // 2, full), full + half: (full, full + half), warm: (full + half, warm)}
+
+    def ends(k):
+        return full + k * half
+
+    return ends, warm, windows
+
+
+def _proposal_at(store, start, windows, frozen):
+    """The independence proposal for the chunk from stored step ``start``: fitted to its window, or frozen."""
+    from cpas_bayes.inference.moves import fit_proposal
+
+    if start in windows:
+        lo, hi = windows[start]
+        return fit_proposal(store.sampler.backend.get_chain()[lo:hi].reshape(-1, store.sampler.ndim))
+    return frozen
+
+
 def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
-    """The ESS rule: all ensembles one chunk further, then :func:`ess_check` on the common length, until met
-    or ``max_steps``. Chunks a checkpoint already holds are not rerun but checked again (the replay), so a
-    resumed run stops where an uninterrupted one does. The main process holds every checkpoint's lock."""
+    """The ESS rule: all ensembles one chunk further, then :func:`ess_check` on the common length (after the
+    adaptive proposal's warm-up, :func:`_schedule`), until met or ``max_steps``. Chunks a checkpoint already
+    holds are not rerun but checked again (the replay), and the proposals are refitted from the same stored
+    draws, so a resumed run stops where an uninterrupted one does. The main process holds every checkpoint's
+    lock."""
     from contextlib import ExitStack
 
     from cpas_bayes.core.files import exclusive_writer
 
-    per_chunk = max(1, options.check_every // options.store_every)
+    ends, warm, windows = _schedule(options)
     with ExitStack() as held:
         for ckpt in ckpts:
             held.enter_context(exclusive_writer(ckpt or None))
         stores = [_EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
-        end, tau_prev = 0, None
+        proposals = [None] * len(stores)
+        k, start, tau_prev = 0, 0, None
         while True:
             raise_if_requested()  # between chunks: every checkpoint is complete
-            end += per_chunk
-            behind = [st for st in stores if st.stored < end]
-            jobs = [(model, st.next_state(), end - st.stored, options.store_every) for st in behind]
-            for st, piece in zip(behind, executor.map(_chunk_task, jobs, desc="chunk", progress=False)):
+            end = ends(k)
+            proposals = [_proposal_at(st, start, windows, p) for st, p in zip(stores, proposals)]
+            behind = [(st, p) for st, p in zip(stores, proposals) if st.stored < end]
+            jobs = [(model, st.next_state(), end - st.stored, options.store_every, p) for st, p in behind]
+            for (st, _), piece in zip(behind, executor.map(_chunk_task, jobs, desc="chunk", progress=False)):
                 st.append(*piece)
-            chains = [st.sampler.backend.get_chain()[:end] for st in stores]
+            k, start, steps = k + 1, end, end * options.store_every
+            if end < warm:
+                continue
+            chains = [st.sampler.backend.get_chain()[warm:end] for st in stores]
+            if end == warm:  # the last adaptation chunk's τ: what the first check's τ must settle against
+                lo, hi = windows[warm]
+                tau_prev = [integrated_time(st.sampler.backend.get_chain()[lo:hi], options.store_every)
+                            for st in stores]
+                continue
             check = ess_check(chains, options.store_every, options.ess_target, options.rhat_target, tau_prev,
                               options.tau_rtol)
             tau_prev = check.taus
-            steps = end * options.store_every
             for label, tau in zip(labels, check.taus) if bars else ():
                 bars.update(label, steps, float(np.max(tau)), check.met)
             if check.met or steps >= options.max_steps:
                 break
-    runs = [_ensemble_run(chain, st.sampler.backend.get_log_prob()[:end], tau, bt, steps, st.acceptance(),
-                          check.met, options.store_every)
-            for st, chain, tau, bt in zip(stores, chains, check.taus, check.burn_thin)]
+    runs = []
+    for st, chain, tau, (burn, thin) in zip(stores, chains, check.taus, check.burn_thin):
+        run = _ensemble_run(chain, st.sampler.backend.get_log_prob()[warm:end], tau, (burn, thin), steps,
+                            st.acceptance(), check.met, options.store_every)
+        run.burn += warm * options.store_every
+        runs.append(run)
     worst = check.statistics.worst() if check.statistics else (np.nan, np.nan, np.nan)
-    return runs, {"stop": "ess", "ess_bulk_min": worst[0], "ess_tail_min": worst[1], "rhat_max": worst[2]}
+    return runs, {"stop": "ess", "ess_bulk_min": worst[0], "ess_tail_min": worst[1], "rhat_max": worst[2],
+                  "proposal": options.proposal}
 
 
 class _ProgressBars:

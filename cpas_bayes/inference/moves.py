@@ -65,3 +65,75 @@ class VectorisedDEMove(emcee.moves.DEMove):
             accepted[mine] = take
             state = self.update(state, emcee.State(q, log_prob=new_log_prob), accepted, mine)
         return state, accepted
+
+
+# ---------------------------------------------------------------------------
+# the adaptive independence proposal
+
+PROPOSAL_DOF = 30.0      # ν of the multivariate t: tails a little heavier than the near-normal posteriors
+PROPOSAL_SHARE = 0.7     # of the moves; differential evolution keeps the rest (any posterior shape)
+
+
+class IndependenceMove(emcee.moves.Move):
+    r"""Independence Metropolis–Hastings with a fixed multivariate-t proposal q = t_ν(μ, LLᵀ).
+
+    Every walker proposes x' ~ q, whatever its position, and accepts with
+    probability min(1, p(x')·q(x) / (p(x)·q(x'))), so with q close to the
+    posterior successive draws are nearly independent: on the two-Drogue
+    example τ falls from ~90 steps (differential evolution, the random-walk
+    limit ≈ D/0.3 of a near-normal posterior in D = 29 dimensions) to ~5.
+    q does not depend on the walkers, so each walker's chain keeps the posterior
+    invariant on its own; the acceptance is one array comparison.
+    """
+
+    def __init__(self, mean, chol, dof=PROPOSAL_DOF):
+        self.mean = np.asarray(mean, float)
+        self.chol = np.asarray(chol, float)
+        self.dof = float(dof)
+        self._chol_inv = np.linalg.inv(self.chol)
+
+    def log_q(self, x):
+        """log q(x) up to its constant (which cancels in the Hastings ratio)."""
+        z = (x - self.mean) @ self._chol_inv.T
+        return -0.5 * (self.dof + self.mean.size) * np.log1p(np.sum(z * z, axis=1) / self.dof)
+
+    def propose(self, model, state):
+        n, d = state.coords.shape
+        z = model.random.randn(n, d) / np.sqrt(model.random.chisquare(self.dof, size=n) / self.dof)[:, None]
+        q = self.mean + z @ self.chol.T
+        new_log_prob = np.asarray(model.log_prob_fn(q), dtype=float)
+        log_ratio = new_log_prob - state.log_prob + self.log_q(state.coords) - self.log_q(q)
+        accepted = log_ratio > np.log(model.random.rand(n))   # NaN: rejected
+        state = self.update(state, emcee.State(q, log_prob=new_log_prob), accepted)
+        return state, accepted
+
+
+def fit_proposal(draws):
+    """(μ, L) of the independence proposal from draws (N, D): their mean and covariance's Cholesky factor.
+
+    None when the draws cannot define one (too few, or a parameter that did not move): the chunk then
+    runs differential evolution alone.
+    """
+    draws = np.asarray(draws, float)
+    n, d = draws.shape
+    if n < 2 * d or not np.all(np.isfinite(draws)):
+        return None
+    cov = np.cov(draws, rowvar=False)
+    scale = np.sqrt(np.diag(cov))
+    if not np.all(scale > 0):
+        return None
+    corr = cov / np.outer(scale, scale)
+    try:
+        # a little ridge on the correlations: a nearly singular estimate would give a proposal too thin to move
+        chol = np.linalg.cholesky(corr + 1e-6 * np.eye(d)) * scale[:, None]
+    except np.linalg.LinAlgError:
+        return None
+    return draws.mean(axis=0), chol
+
+
+def ensemble_moves(proposal=None):
+    """emcee's moves for one chunk: differential evolution, mixed with the independence move when a
+    proposal (μ, L) is given."""
+    if proposal is None:
+        return [(VectorisedDEMove(), 1.0)]
+    return [(VectorisedDEMove(), 1.0 - PROPOSAL_SHARE), (IndependenceMove(*proposal), PROPOSAL_SHARE)]
