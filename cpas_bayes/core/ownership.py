@@ -308,8 +308,9 @@ def ensure_folder(path) -> Marker | None:
         except FileExistsError:
             if not path.is_dir():
                 raise NotADirectoryError(errno.ENOTDIR, "a file is in the way of a folder", str(path)) from None
-            if read_marker(path) is not None:  # made by another process of ours just before we held the lock
-                return read_marker(path)
+            marker = read_marker(path)
+            if marker is not None:  # made by another process of ours just before we held the lock
+                return marker
         new_marker(path, CREATED)
     return read_marker(path)
 

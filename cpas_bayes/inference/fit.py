@@ -154,7 +154,7 @@ def _fingerprint(model, init, options):
     h.update(np.ascontiguousarray(init).tobytes())
     key = [options.seed, options.store_every]
     if options.proposal != "de" and options.stop == "ess":  # the adaptive chain depends on its chunks too
-        key += [options.proposal, options.check_every]
+        key += [options.proposal, options.check_every, "log θ for lognormal priors"]  # the proposal's coordinates
     h.update(json.dumps(key).encode())
     return h.hexdigest()[:16]
 
@@ -372,7 +372,8 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
 def run_ensembles(model, inits, seeds, options: SamplerOptions, checkpoints=None, executor=None):
     """Run one ensemble per initial ball ``inits[e]`` (walkers, D) and seed under ``options.stop``'s rule.
 
-    ``model`` is the vectorised log posterior (with ``names``); ``checkpoints`` one file (or None) per
+    ``model`` is the vectorised log posterior (with ``names``, and optionally ``log_scale``: the parameters
+    whose adaptive proposal works in log θ); ``checkpoints`` one file (or None) per
     ensemble; ``executor`` default this process. Returns ([:class:`EnsembleRun`], what the ESS rule saw
     at its last check, empty under the τ rule).
     """
@@ -437,7 +438,9 @@ def _proposal_at(store, start, windows, frozen):
 
     if start in windows:
         lo, hi = windows[start]
-        return fit_proposal(store.sampler.backend.get_chain()[lo:hi].reshape(-1, store.sampler.ndim))
+        # the window only: the chain before it is not copied
+        draws = store.sampler.backend.get_chain(discard=lo)[:hi - lo].reshape(-1, store.sampler.ndim)
+        return fit_proposal(draws, getattr(store.model, "log_scale", None))   # a bare log density: θ coordinates
     return frozen
 
 

@@ -107,8 +107,11 @@ def integrated_time(chain, store_every):
     for d in range(x.shape[2]):                    # one parameter at a time: its (2n, W) block stays in cache
         spectrum = fft.rfft(x[:, :, d] - x[:, :, d].mean(axis=0), n=size, axis=0)
         acov = fft.irfft(spectrum.real ** 2 + spectrum.imag ** 2, n=size, axis=0)[:n]
+        # a walker that never moved in the window (stuck: every proposal rejected) is perfectly correlated,
+        # ρ ≡ 1, not 0/0: τ then grows with the window instead of turning NaN
+        stuck = np.ptp(x[:, :, d], axis=0) == 0
         with np.errstate(invalid="ignore", divide="ignore"):
-            rho[:, d] = (acov / acov[0]).mean(axis=1)   # the walkers' mean autocorrelation
+            rho[:, d] = np.where(stuck, 1.0, acov / np.where(stuck, 1.0, acov[0])).mean(axis=1)
     taus = 2.0 * np.cumsum(rho, axis=0) - 1.0
     inside = np.arange(n)[:, None] < 5.0 * taus          # Sokal's window, c = 5
     window = np.where(inside.any(axis=0), np.argmin(inside, axis=0), n - 1)

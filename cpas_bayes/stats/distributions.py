@@ -192,6 +192,10 @@ def beta_ppf(u, a, b, low=0.0, high=1.0):
 class Distribution:
     """A one-dimensional distribution with fixed numbers; every method is vectorised over x or u."""
 
+    # True when the density is (truncated) normal in log x: a posterior the data leave near such a prior is
+    # then near-normal in log x, the coordinates a sampler's Gaussian proposal should use
+    log_scale = False
+
     @property
     def support(self):
         return (-np.inf, np.inf)
@@ -328,6 +332,8 @@ class LogNormal(Distribution):
     sigma_log: float
     low: float = 0.0
     high: float = math.inf
+
+    log_scale = True
 
     @property
     def support(self):

@@ -139,6 +139,11 @@ class TestModel:
         return len(self.parameters)
 
     @property
+    def log_scale(self):
+        """Per parameter: True where its prior is lognormal (the sampler's proposal then works in log θ)."""
+        return np.array([p.prior.log_scale for p in self.parameters], bool)
+
+    @property
     def name(self):
         return "baseline" if not self.extensions else "+".join(e.name for e in self.extensions)
 
