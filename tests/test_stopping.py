@@ -20,7 +20,7 @@ from cpas_bayes.data.bundle import example_bundles, read_bundle
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.synth import truth_parameter_values
 from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model, run_ensemble, run_ensembles
-from cpas_bayes.inference.stopping import (TAIL_QUANTILES, burn_and_thin, chain_statistics, ess_check,
+from cpas_bayes.inference.stopping import (KEPT_DRAWS, TAIL_QUANTILES, burn_and_thin, chain_statistics, ess_check,
                                            integrated_time)
 
 PHI = 0.5
@@ -73,6 +73,11 @@ def test_burn_in_is_half_the_chain_under_the_ess_rule_and_two_tau_under_the_tau_
     assert burn_and_thin(tau, 5) == (40, 4)
     assert burn_and_thin(tau, 5, n_stored=1000) == (500, 4)
     assert burn_and_thin(tau, 5, n_stored=60) == (40, 4)
+    # the cap on kept draws: 500 kept steps of 60 walkers would be 7,500 draws per ensemble
+    burn, thin = burn_and_thin(tau, 5, n_stored=1000, walkers=60)
+    assert burn == 500 and thin > 4
+    assert len(range(burn, 1000, thin)) * 60 <= KEPT_DRAWS < len(range(burn, 1000, thin - 1)) * 60
+    assert burn_and_thin(tau, 5, n_stored=60, walkers=60) == (40, 4)   # few draws: τ's thinning only
     # too short to say anything: not met, no statistics
     assert not ess_check([np.zeros((6, 4, 2)) + np.arange(6)[:, None, None]] * 2, 5).met
 
