@@ -221,7 +221,12 @@ REFUSALS = [
     ("missing test.toml", lambda f: f.toml_path.unlink(), "test.toml", None, "file not found"),
     ("missing data.csv", lambda f: f.csv_path.unlink(), "data.csv", None, "file not found"),
     *[(f"missing column {c}", lambda f, c=c: f.drop_column(c), "data.csv", f"column '{c}'", "missing column")
-      for c in ("time", "G", "qbar", "airspeed", "gamma")],
+      for c in ("time", "G", "gamma")],
+    # without one of qbar and airspeed the bundle is neither one with measured air data nor a logger bundle
+    ("missing column qbar", lambda f: f.drop_column("qbar"), "data.csv", "column 'qbar'",
+     "missing column 'qbar': data.csv gives 'airspeed' but not 'qbar'"),
+    ("missing column airspeed", lambda f: f.drop_column("airspeed"), "data.csv", "column 'airspeed'",
+     "missing column 'airspeed': data.csv gives 'qbar' but not 'airspeed'"),
     ("load cell absent from data.csv", lambda f: f.drop_column("F_D6"), "data.csv", "column 'F_D6'",
      "parachute 'D6' names load_cell 'F_D6' but data.csv has no such column"),
     ("non-numeric cell", lambda f: f.set_cell(5, "airspeed", "fast"), "data.csv", "row 5, column 'airspeed'",

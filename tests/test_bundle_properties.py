@@ -182,7 +182,9 @@ def missing_csv(draw, plan, files):
 def missing_required_column(draw, plan, files):
     column = draw(st.sampled_from(REQUIRED))
     files.drop_column(column)
-    return CSV, f"column '{column}'", "missing column"
+    other = {"qbar": "airspeed", "airspeed": "qbar"}.get(column)   # one without the other: said as such
+    return CSV, f"column '{column}'", f"missing column '{column}': data.csv gives '{other}'" if other else \
+        "missing column"
 
 
 def missing_named_column(draw, plan, files):

@@ -33,7 +33,8 @@ SUMMARY_LINES = {
 
 # The check list, planted in a copy of the drogue example: defect, file and place, problem.
 BROKEN = {
-    "missing column": (lambda f: f.drop_column("airspeed"), "data.csv, column 'airspeed'", "missing column"),
+    "missing column": (lambda f: f.drop_column("airspeed"), "data.csv, column 'airspeed'",
+                       "missing column 'airspeed': data.csv gives 'qbar' but not 'airspeed'"),
     "NaN in qbar": (lambda f: f.set_cell(7, "qbar", "nan"), "data.csv, row 7, column 'qbar'",
                     "the cell is 'nan', not a finite number"),
     "time not increasing": (lambda f: f.set_cell(50, "time", "0.47"), "data.csv, row 50, column 'time'",

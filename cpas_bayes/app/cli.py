@@ -65,6 +65,8 @@ def _format_summary(s):
                      f"{'; ' + ', '.join(extras) if extras else ''}")
         lines.append(f"      stages: {stages}")
     lines.append(f"  channels: {', '.join(s['channels'])}")
+    if "air_data" in s:
+        lines.append(f"  air data: {s['air_data']}")
     return "\n".join(lines)
 
 
@@ -183,8 +185,11 @@ def _effect_name(ctx, param, value):
 
 
 @cli.command("synth")
-@click.option("--scenario", type=click.Choice(["drogue", "main"]), required=True,
-              help="Scenario library entry: two Drogues (infinite mass) or three Mains (finite mass).")
+@click.option("--scenario", type=click.Choice(["drogue", "main", "logger-drop", "logger-drogue", "logger-main"]),
+              required=True,
+              help="Scenario library entry: two Drogues (infinite mass) or three Mains (finite mass), with q̄ and "
+                   "load cells; or a logger test without q̄ (accelerometer and GNSS): one unreefed canopy "
+                   "(logger-drop), two reefed Drogues, three reefed Mains.")
 @click.option("--effect", default="none", show_default=True, callback=_effect_name,
               help="Hidden effect to put in the data: none; catalogued: added_mass, friction_drift, sensor_lag, "
                    "canopy_breathing; outside the catalogue: pitot_lag, accelerometer_clipping, riser_ringing, "
@@ -202,6 +207,14 @@ def synth_command(scenario, effect, magnitude, seed, out):
 
     if magnitude and effect == "none":
         raise click.BadParameter("a magnitude needs an effect other than 'none'", param_hint="--magnitude")
+    if scenario.startswith("logger-"):
+        if effect != "none":
+            raise click.BadParameter(f"logger scenarios have no hidden effects yet; drop --effect {effect}",
+                                     param_hint="--effect")
+        from cpas_bayes.data.synth_logger import write_logger_synthetic
+        folder = write_logger_synthetic(scenario, seed, out)
+        click.echo(f"wrote {folder} ({scenario}, seed {seed}) with truth.json")
+        return
     if not magnitude:
         magnitude = None
     elif is_pair(effect):

@@ -6,7 +6,9 @@ and ``data.csv`` (time histories). :func:`read_bundle` returns a
 
 ``time, G, G_sigma, qbar, qbar_sigma, airspeed, gamma`` (deg), optional
 ``density, altitude``, and per parachute with a load cell ``F_<id>,
-F_<id>_sigma``, with a fly-out angle ``theta_<id>, theta_<id>_sigma`` (deg).
+F_<id>_sigma``, with a fly-out angle ``theta_<id>, theta_<id>_sigma`` (deg). A logger
+bundle has ``v_north, v_east, v_up, altitude`` and their sigmas in place of ``qbar, airspeed,
+gamma``, NaN where a channel has no sample, and ``air_data`` (:mod:`cpas_bayes.data.bundle_air`).
 
 Every refusal is a :class:`~cpas_bayes.core.errors.BundleError` naming the file,
 the row or key, and the fix, raised while reading, before any work: unknown
@@ -30,7 +32,10 @@ from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.inputs import MAX_TEXT, check_keys, check_name, check_text, name_problem, nearest, read_toml, shown
 from cpas_bayes.core.units import UNIT_SYSTEMS, UnitSystem, unit_system
 from cpas_bayes.data import limits
-from cpas_bayes.data.bundle_csv import numeric_column, read_csv, sigma_column
+from cpas_bayes.data.air_data import AirDataSpec
+from cpas_bayes.data.bundle_air import AIR_TABLES, LOGGER_QUANTITY, air_summary, check_measured_columns, \
+    logger_bundle, logger_columns, parse_air_tables, refuse_air_tables, sigma_channels
+from cpas_bayes.data.bundle_csv import csv_header, numeric_column, read_csv, sigma_column
 from cpas_bayes.data.limits import MAX_COLUMN_NAME, check_column, check_record, check_value
 
 KINDS = ("drogue", "main", "pilot", "fbcp")   # kinds whose priors the package ships; any other needs a priors file
@@ -40,7 +45,7 @@ CSV_NAME = "data.csv"
 
 # Column -> physical quantity, for unit conversion. Angles stay in degrees.
 COLUMN_QUANTITY = {"time": "time", "qbar": "pressure", "qbar_sigma": "pressure",
-                    "airspeed": "speed", "density": "density", "altitude": "length"}
+                    "airspeed": "speed", "density": "density", "altitude": "length", **LOGGER_QUANTITY}
 
 
 @dataclass(frozen=True)
@@ -104,6 +109,12 @@ class FlightTest:
     data: pd.DataFrame = field(repr=False)
     source: Path | None = None
     priors_files: tuple[Path, ...] = ()   # test.toml's own prior files (key ``priors``), resolved
+    air_data: AirDataSpec | None = None   # a logger bundle's [wind], [atmosphere], [rate] (data.air_data)
+
+    @property
+    def measured_qbar(self):
+        """True when data.csv gives q̄ (and airspeed); False for a logger bundle (GNSS velocity and altitude)."""
+        return "qbar" in self.data.columns
 
     @property
     def time(self):
@@ -156,14 +167,14 @@ PARACHUTE_KEYS = ("id", "kind", "inflation", "diameter", "diameter_sigma", "weig
                   "flyout_angle", "stage")
 STAGE_KEYS = ("label", "start", "start_sigma")
 # data.csv columns with a fixed meaning: no parachute's load_cell or flyout_angle may name one of them.
-_RESERVED = ("time", "G", "qbar", "airspeed", "gamma", "density", "altitude")
+_RESERVED = ("time", "G", "qbar", "airspeed", "gamma", "density", "altitude", "v_north", "v_east", "v_up")
 
 
 def _is_number(value):
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-class _TomlReader:
+class TomlReader:
     """Typed access to test.toml that refuses with file, key and fix."""
 
     def __init__(self, path, units=None):
@@ -373,12 +384,12 @@ def _test_name(doc, reader, folder):
     return name
 
 
-def _sigma_table(doc, reader, parachutes, units):
+def _sigma_table(doc, reader, parachutes, units, logger):
     """The [sigma] table: keys are channels this bundle has, values plausible 1-sigmas in the bundle's units."""
     table = doc.get("sigma", {})
     if not isinstance(table, dict):
         reader.fail("sigma", "is not a table", "write constant sigmas as a [sigma] table")
-    specs = {"G": limits.CHANNELS["G"], "qbar": limits.CHANNELS["qbar"]}
+    specs = {c: limits.CHANNELS[c] for c in sigma_channels(logger)}
     for p in parachutes:
         if p.load_cell:
             specs[p.load_cell] = limits.CHANNELS["F"]
@@ -414,15 +425,18 @@ class BundleMetadata:
     parachutes: tuple[Parachute, ...]
     sigma: dict
     priors_files: tuple[Path, ...] = ()
+    air_data: AirDataSpec | None = None   # a logger bundle's [wind], [atmosphere], [rate], SI
 
 
-def parse_test_document(doc, path, folder) -> BundleMetadata:
+def parse_test_document(doc, path, folder, logger=False) -> BundleMetadata:
     """Check a test.toml document and convert it to SI; raise :class:`BundleError` naming ``path`` and the key.
 
-    ``folder``'s name is the test's name when the document has none.
+    ``folder``'s name is the test's name when the document has none. ``logger``: the data.csv beside it makes
+    a logger bundle (True), one with measured q̄ (False), or either (None) (:func:`bundle_air.logger_bundle`).
     """
-    reader = _TomlReader(path)
-    reader.keys(doc, TOP_KEYS, "")
+    reader = TomlReader(path)
+    refuse_air_tables(doc, reader, logger)
+    reader.keys(doc, TOP_KEYS + (AIR_TABLES if logger is not False else ()), "")
 
     units_name = reader.string(doc, "units", "")
     if units_name not in UNIT_SYSTEMS:
@@ -445,8 +459,9 @@ def parse_test_document(doc, path, folder) -> BundleMetadata:
                                          plausible=cds.sigma()) or 0.0, "area"),
     )
     parachutes = _parse_parachutes(doc, reader, units)
-    sigma_table = _sigma_table(doc, reader, parachutes, units)
-    return BundleMetadata(name, phase, units, vehicle, parachutes, sigma_table, priors_files)
+    sigma_table = _sigma_table(doc, reader, parachutes, units, logger)
+    return BundleMetadata(name, phase, units, vehicle, parachutes, sigma_table, priors_files,
+                          parse_air_tables(doc, reader, logger))
 
 
 def read_bundle(folder) -> FlightTest:
@@ -456,10 +471,10 @@ def read_bundle(folder) -> FlightTest:
         raise BundleError(folder, "", "not a folder" if folder.exists() else "folder not found",
                           "pass the path of a bundle folder holding test.toml and data.csv")
     toml_path, csv_path = folder / TOML_NAME, folder / CSV_NAME
-    meta = parse_test_document(_read_toml(toml_path), toml_path, folder)
-    name, phase, units, vehicle, parachutes, sigma_table = (meta.name, meta.phase, meta.units, meta.vehicle,
-                                                            meta.parachutes, meta.sigma)
-    reader = _TomlReader(toml_path, units)
+    # What test.toml may hold depends on the kind of bundle data.csv's columns make (logger or measured q̄).
+    meta = parse_test_document(_read_toml(toml_path), toml_path, folder, logger_bundle(csv_header(csv_path)))
+    units, parachutes, sigma_table = meta.units, meta.parachutes, meta.sigma
+    reader = TomlReader(toml_path, units)
 
     raw = read_csv(csv_path)
     columns = {}
@@ -495,6 +510,9 @@ def read_bundle(folder) -> FlightTest:
                           "sort the rows by time and remove duplicate samples")
     check_record(t, csv_path)
     _check_stages_in_record(parachutes, t, reader, csv_path)
+    if logger_bundle(raw.columns):
+        return _flight_test(meta, {**columns, **logger_columns(raw, meta, csv_path)}, folder)
+    check_measured_columns(raw.columns, csv_path)
     for col in ("G", "qbar", "airspeed", "gamma"):
         columns[col] = need(col, "required by the bundle format", None)
         if col == "qbar" and (columns[col] <= 0).any():
@@ -521,17 +539,22 @@ def read_bundle(folder) -> FlightTest:
                                   f"add the column or remove {what} from parachute {p.id!r} in test.toml")
             columns[canonical] = need(column, f"{what} of {p.id}", limits.CHANNELS[kind])
             need_sigma(column, canonical, limits.CHANNELS[kind], required=kind == "F")
+    return _flight_test(meta, columns, folder)
 
+
+def _flight_test(meta, columns, folder):
+    """The :class:`FlightTest` of data.csv's ``columns`` (canonical names, the bundle's units) converted to SI."""
     data = pd.DataFrame(columns)
     for col, quantity in COLUMN_QUANTITY.items():
         if col in data:
-            data[col] = units.si(data[col].to_numpy(), quantity)
-    for p in parachutes:
+            data[col] = meta.units.si(data[col].to_numpy(), quantity)
+    for p in meta.parachutes:
         if p.load_cell:
             for c in (p.load_column, f"{p.load_column}_sigma"):
-                data[c] = units.si(data[c].to_numpy(), "force")
-    return FlightTest(name=name, phase=phase, units=units, vehicle=vehicle, parachutes=parachutes,
-                      data=data, source=folder, priors_files=meta.priors_files)
+                data[c] = meta.units.si(data[c].to_numpy(), "force")
+    return FlightTest(name=meta.name, phase=meta.phase, units=meta.units, vehicle=meta.vehicle,
+                      parachutes=meta.parachutes, data=data, source=folder, priors_files=meta.priors_files,
+                      air_data=meta.air_data)
 
 
 def with_data(test: FlightTest, data: pd.DataFrame) -> FlightTest:
@@ -557,6 +580,7 @@ def summary(test: FlightTest) -> dict:
             for p in test.parachutes
         ],
         "channels": test.channels,
+        **({"air_data": air_summary(test)} if test.air_data is not None else {}),
     }
 
 

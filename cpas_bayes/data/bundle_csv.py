@@ -121,16 +121,50 @@ def parse_numbers(frame, column):
     return values, i, raw.iloc[i]
 
 
+def _bad_cell(path, column, i, cell, value, fix):
+    what = "is empty" if cell == "" else (f"is not a number ({shown(cell)})" if np.isnan(value) and
+                                          cell.lower() not in ("nan", "-nan", "+nan") else
+                                          f"is {shown(cell)}, not a finite number")
+    return BundleError(path, f"row {i + 2}, column '{column}'", f"the cell {what}", fix)
+
+
 def numeric_column(frame, column, path):
     """The finite numbers of one column; refuses the first empty, non-numeric or non-finite cell."""
     values, i, cell = parse_numbers(frame, column)
     if i is not None:
-        what = "is empty" if cell == "" else (f"is not a number ({shown(cell)})" if np.isnan(values[i]) and
-                                              cell.lower() not in ("nan", "-nan", "+nan") else
-                                              f"is {shown(cell)}, not a finite number")
-        raise BundleError(path, f"row {i + 2}, column '{column}'", f"the cell {what}",
-                          "every cell of a used column must hold a finite number; remove or repair the row")
+        raise _bad_cell(path, column, i, cell, values[i],
+                        "every cell of a used column must hold a finite number; remove or repair the row")
     return values
+
+
+def blank_column(frame, column, path):
+    """One column whose empty cells are missing samples (NaN); refuses the first non-numeric or non-finite
+    cell (a written ``nan`` too: a gap is an empty cell)."""
+    raw = frame[column].fillna("").str.strip()
+    blank = (raw == "").to_numpy()
+    values = pd.to_numeric(raw.mask(blank, "0"), errors="coerce").to_numpy(dtype=float, copy=True)
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size:
+        i = int(bad[0])
+        raise _bad_cell(path, column, i, raw.iloc[i], values[i],
+                        "a cell holds a finite number, or is empty where the channel has no sample")
+    values[blank] = np.nan
+    return values
+
+
+def csv_header(path):
+    """data.csv's column names from a look at its first line, or None when the file is missing or unreadable
+    (:func:`read_csv` then says why)."""
+    try:
+        with open(path, "rb") as fh:
+            line = fh.readline(MAX_CSV_COLUMNS * (MAX_COLUMN_NAME + 2))   # a longer header is refused anyway
+    except OSError:
+        return None
+    try:
+        text = line.removeprefix(b"\xef\xbb\xbf").decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    return [h.strip() for h in text.strip().split(",")]
 
 
 def sigma_column(frame, column, sigma_table, path):

@@ -1,13 +1,15 @@
 """Writing a flight-test bundle: ``test.toml`` and ``data.csv`` in the test's own units, atomically.
 
 The inverse of :func:`cpas_bayes.data.bundle.read_bundle` (format:
-``docs/test-bundle.md``); a written bundle reads back to the same test.
+``docs/test-bundle.md``); a written bundle reads back to the same test,
+a logger bundle's missing samples as empty cells and its air data as tables.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import tomli_w
 
@@ -37,7 +39,28 @@ def _toml_document(test: FlightTest):
             entry["flyout_angle"] = p.flyout_angle
         entry["stage"] = [{"label": s.label, "start": s.start, "start_sigma": s.start_sigma} for s in p.stages]
         doc["parachute"].append(entry)
+    doc.update(_air_tables(test))
     return doc
+
+
+def _air_tables(test: FlightTest):
+    """A logger bundle's [wind], [atmosphere] and [rate] in the test's units (none when not given)."""
+    air, out = test.air_data, {}
+
+    def levels(values, quantity):
+        return test.units.from_si(np.asarray(values, dtype=float), quantity).tolist()
+
+    if air is None:
+        return out
+    if air.wind is not None:
+        out["wind"] = {"altitude": levels(air.wind.altitude, "length"), "north": levels(air.wind.north, "speed"),
+                       "east": levels(air.wind.east, "speed"), "sigma": float(levels(air.wind.sigma, "speed"))}
+    if air.atmosphere is not None:
+        out["atmosphere"] = {"altitude": levels(air.atmosphere.altitude, "length"),
+                             "density": levels(air.atmosphere.density, "density")}
+    if air.rates:
+        out["rate"] = {k: float(v) for k, v in air.rates.items()}
+    return out
 
 
 def bundle_frame(test: FlightTest) -> pd.DataFrame:
@@ -76,7 +99,8 @@ def write_bundle(test: FlightTest, folder, extra_files=None, check=None):
     extra_files = {**{f.name: Path(f).read_text(encoding="utf-8") for f in test.priors_files}, **(extra_files or {})}
     with atomic_directory(folder) as tmp:
         (tmp / TOML_NAME).write_bytes(tomli_w.dumps(_toml_document(test)).encode("utf-8"))
-        bundle_frame(test).to_csv(tmp / CSV_NAME, index=False, float_format="%.15g")
+        # NaN is a logger bundle's missing sample: an empty cell
+        bundle_frame(test).to_csv(tmp / CSV_NAME, index=False, float_format="%.15g", na_rep="")
         for name, text in (extra_files or {}).items():
             (tmp / name).write_text(text, encoding="utf-8")
         if check is not None:

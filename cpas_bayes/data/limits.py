@@ -80,6 +80,19 @@ CHANNELS = {
     "theta": Plausible(None, -180.0, 180.0, "an angle beyond ±180° is not in degrees", "deg",
                        "fly-out angles are in degrees"),
 }
+# A logger bundle's GNSS ground velocity, one entry per component (north, east, up).
+_VELOCITY = Plausible("speed", -1000.0, 1000.0, "no parachute deploys faster than Mach 3, ~1000 m/s, in any "
+                      "direction", hint=_UNITS_HINT)
+CHANNELS.update({c: _VELOCITY for c in ("v_north", "v_east", "v_up")})
+
+# A logger bundle's [wind] components and [rate] entries (test.toml).
+AIR_DATA = {
+    "wind": Plausible("speed", -150.0, 150.0, "jet-stream cores reach ~100 m/s; no parachute test flies in a "
+                      "wind of 150 m/s", hint=_UNITS_HINT),
+    "rate": Plausible(None, 0.1, 100_000.0, "a channel sampled less often than every 10 s cannot see an "
+                      "inflation; 100 kHz is faster than any flight data system", "Hz",
+                      "a rate is in Hz (samples per second), not a sample interval"),
+}
 
 # test.toml numbers, by key.
 VEHICLE = {

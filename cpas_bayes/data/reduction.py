@@ -176,6 +176,7 @@ class Reduction:
     peaks: tuple
     load_share: tuple
     peak_smoothing: float = DEFAULT_PEAK_SMOOTHING
+    air_estimate: object = None   # a logger bundle's best-estimate trajectory (data.air_reconstruction)
 
     @property
     def csv_columns(self):
@@ -227,6 +228,12 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
     ``peak_smoothing`` the peak filter's width (s), 0 for raw maxima.
     """
     mode = _check_mode(test, scale)
+    air_estimate = None
+    if not test.measured_qbar:
+        # A logger bundle: q̄ from the best-estimate trajectory, at the accelerometer's readings.
+        from cpas_bayes.data.air_reconstruction import best_estimate_trajectory, with_best_estimate
+        air_estimate = best_estimate_trajectory(test)
+        test = with_best_estimate(test, air_estimate)
     d = test.data
     time = d["time"].to_numpy()
     G, dG = d["G"].to_numpy(), d["G_sigma"].to_numpy()
@@ -240,6 +247,13 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
     load_total_s = accelerometer_load_sigma(G, q, veh.weight, veh.cds, dG, dq, veh.weight_sigma, veh.cds_sigma)
     cds_total = accelerometer_drag_area(G, q, W_T, veh.cds)
     cds_total_s = accelerometer_drag_area_sigma(G, q, W_T, dG, dq, dW_T, veh.cds_sigma)
+    if air_estimate is not None:
+        # The reconstructed q̄'s error is one set of air parameters for the whole record: systematic.
+        no_q = np.zeros_like(dq)
+        r_load = accelerometer_load_sigma(G, q, veh.weight, veh.cds, dG, no_q, 0.0, 0.0).random
+        r_cds = accelerometer_drag_area_sigma(G, q, W_T, dG, no_q, 0.0, 0.0).random
+        load_total_s = SigmaParts(r_load, np.sqrt(np.maximum(load_total_s.total**2 - r_load**2, 0.0)))
+        cds_total_s = SigmaParts(r_cds, np.sqrt(np.maximum(cds_total_s.total**2 - r_cds**2, 0.0)))
     for name, value, s in (("load_total", load_total, load_total_s), ("cds_total", cds_total, cds_total_s)):
         cols[name], cols[f"{name}_sigma"] = value, s.total
         cols[f"{name}_sigma_random"], cols[f"{name}_sigma_systematic"] = s.random, s.systematic
@@ -260,7 +274,7 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
                              "drop --window, or add load_cell columns to the bundle")
         frame = pd.DataFrame(cols)
         peaks, _ = peaks_and_load_share(cols, intervals, (), width)
-        return Reduction(test, frame, None, peaks, (), peak_smoothing)
+        return Reduction(test, frame, None, peaks, (), peak_smoothing, air_estimate)
 
     # Fly-out-corrected (Eq. 13) but unscaled loads and drag areas (Eq. 11, 12).
     axial, axial_s = {}, {}
@@ -322,7 +336,7 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
 
     # Peaks and load share per stage.
     peaks, shares = peaks_and_load_share(cols, intervals, with_cells, width)
-    return Reduction(test, frame, scale_factor, peaks, shares, peak_smoothing)
+    return Reduction(test, frame, scale_factor, peaks, shares, peak_smoothing, air_estimate)
 
 
 # ---------------------------------------------------------------------------

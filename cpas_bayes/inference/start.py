@@ -28,6 +28,8 @@ def first_guess(model: TestModel):
     for ext in model.extensions:
         for name, value in ext.initial_values(model).items():
             theta[idx[name]] = value
+    for name, value in model.initial_values().items():
+        theta[idx[name]] = value
     t = obs.time
     total_late = np.median(obs.acc[t > t[-1] - 0.15 * (t[-1] - t[0])]) + obs.stated_vehicle_cds
     lc_rows = {int(c): r for r, c in enumerate(obs.lc_index)}

@@ -277,6 +277,10 @@ class TestModel:
         out["cds_stage"] = out["eps"] * out["cds_o"][:, :, None]
         return out
 
+    def initial_values(self):
+        """{parameter: value} the data fix before any fit (the MAP search's first guess uses them); none here."""
+        return {}
+
     def values(self, theta):
         """Named view of θ: {name: (B,)}."""
         return {n: theta[:, i] for i, n in enumerate(self.names)}

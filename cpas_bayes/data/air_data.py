@@ -1,0 +1,84 @@
+"""What a logger bundle without measured q̄ says about the air: winds, density and sample rates.
+
+A bundle may omit ``qbar``, ``airspeed`` and ``gamma`` and give instead the
+ground velocity of a GNSS receiver (``v_north``, ``v_east``, ``v_up``, blank
+between its samples) and an ``altitude`` (docs/test-bundle.md, "Logger
+bundles"). Its test.toml may then hold:
+
+``[wind]``
+    ``altitude``, ``north``, ``east``: arrays, the air mass's velocity toward
+    north and east (meteorology's v and u) at each altitude; ``sigma``: the
+    1-sigma of each component, one systematic error for the whole profile.
+``[atmosphere]``
+    ``altitude``, ``density``: a measured density profile (a balloon sounding)
+    used in place of the 1976 standard atmosphere.
+``[rate]``
+    ``G``, ``v``, ``altitude``: each channel's declared sample rate, Hz. A
+    logger averages (or low-pass filters) over its sample interval, so the model
+    averages its prediction over 1/rate before each sample. Absent: the
+    median interval between the channel's own (non-blank) samples.
+
+Everything here is SI: m, m/s, kg/m³, Hz. Pure data and interpolation; the
+reading and checking live in :mod:`cpas_bayes.data.bundle_air`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# Data columns a logger bundle may hold, canonical names (each may have a ``<name>_sigma``).
+VELOCITY_COLUMNS = ("v_north", "v_east", "v_up")
+RATE_CHANNELS = ("G", "v", "altitude")
+
+
+@dataclass(frozen=True)
+class WindProfile:
+    """The air mass's velocity (toward north, toward east) against altitude, with one 1-sigma per component."""
+
+    altitude: np.ndarray   # (L,) m, strictly increasing
+    north: np.ndarray      # (L,) m/s
+    east: np.ndarray       # (L,) m/s
+    sigma: float = 0.0     # m/s, systematic: the whole profile may be off by one unknown offset
+
+    def at(self, altitude):
+        """(north, east) at ``altitude`` (any shape): linear, held constant beyond the profile's ends."""
+        h = np.asarray(altitude, float)
+        return np.interp(h, self.altitude, self.north), np.interp(h, self.altitude, self.east)
+
+
+@dataclass(frozen=True)
+class DensityProfile:
+    """A measured density profile: ρ(h), log-linear between levels, held beyond the ends."""
+
+    altitude: np.ndarray   # (L,) m, strictly increasing
+    density: np.ndarray    # (L,) kg/m³, > 0
+
+    def __call__(self, altitude):
+        h = np.asarray(altitude, float)
+        return np.exp(np.interp(h, self.altitude, np.log(self.density)))
+
+
+@dataclass(frozen=True)
+class AirDataSpec:
+    """The air-data part of a logger bundle's test.toml (all optional)."""
+
+    wind: WindProfile | None = None
+    atmosphere: DensityProfile | None = None
+    rates: dict = field(default_factory=dict)   # channel (RATE_CHANNELS) -> declared rate, Hz
+
+
+def channel_samples(data, column):
+    """(time, values) of a channel's non-blank samples (blank cells are NaN in the test's data)."""
+    values = data[column].to_numpy(float)
+    keep = np.isfinite(values)
+    return data["time"].to_numpy(float)[keep], values[keep]
+
+
+def sample_interval(data, column, spec: AirDataSpec | None, channel):
+    """The channel's sample interval, s: 1/declared rate, else the median interval between its samples."""
+    if spec is not None and channel in spec.rates:
+        return 1.0 / float(spec.rates[channel])
+    t, _ = channel_samples(data, column)
+    return float(np.median(np.diff(t))) if t.size > 1 else 0.0

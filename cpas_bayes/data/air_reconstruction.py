@@ -1,0 +1,454 @@
+"""Best-estimate trajectory of a logger bundle: airspeed, flight-path angle and q̄ with their uncertainty.
+
+A logger bundle (docs/test-bundle.md, "Logger bundles") has no measured q̄:
+an accelerometer, a GNSS receiver's ground velocity, an altitude, perhaps a
+wind profile. The airspeed comes from flight-path reconstruction with the
+accelerometer as input (:mod:`cpas_bayes.physics.flight_path`), whose nine
+systematic unknowns are named here (:data:`AIR_PARAMETERS`):
+
+===================== ====== ==========================================================
+``airspeed_0``        m/s    airspeed at the first accelerometer reading
+``flight_path_angle_0`` deg  its flight-path angle, positive above the horizon
+``heading_0``         deg    its air-relative heading, from north toward east
+``altitude_0``        m      altitude then
+``wind_north``        m/s    the wind profile's error (or the wind, without a profile)
+``wind_east``         m/s
+``accel_scale``              accelerometer reading / true specific force
+``accel_bias``        g      reading at zero specific force
+``gnss_latency``      s      the receiver's samples show the state this long before their time stamp
+===================== ====== ==========================================================
+
+Their priors (:func:`air_priors`) are normal, truncated: the initial state is
+centred on the first GNSS sample less the stated wind with widths that let the
+data decide (airspeed ±max(15 m/s, 50 %), angles ±30° and ±90°); the wind
+offset has the profile's stated sigma (10 m/s per component without a
+profile); scale 1 ± 0.03, bias 0 ± 0.05 g, latency 0.3 ± 0.5 s within −0.5 … 2 s
+(receivers stamp velocity late by their filter's delay, up to ~1.5 s).
+
+Likelihood of the receiver's samples (:func:`gnss_log_likelihood`): the
+velocity components and altitudes are jointly normal about the reconstruction
+at their time stamps minus the latency, with covariance λ²·Σ: the receiver's
+stated sigmas plus the random walk that the accelerometer's noise integrates
+to, which correlates every later sample (:class:`ReceiverErrors`).
+Altitude samples on the velocity's rows are the receiver's and share its
+latency; an altitude logged on other rows (a barometer) has none. Receiver
+samples stamped within the latency's prior range of the record's ends are left
+out, so that the set of samples does not change with the latency.
+
+:func:`best_estimate_trajectory` maximises that likelihood times the priors
+(least squares, scipy) and propagates the Gauss–Newton covariance to q̄ and
+airspeed by sampling: what ``reduce`` reports for a logger bundle. The fit
+itself (:mod:`cpas_bayes.stats.logger_model`) samples the nine parameters with
+the inflation parameters instead of fixing them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from cpas_bayes.core.errors import BundleError
+from cpas_bayes.data.air_data import VELOCITY_COLUMNS, channel_samples, sample_interval
+from cpas_bayes.data.bundle import FlightTest, with_data
+from cpas_bayes.physics import flight_path as fp
+from cpas_bayes.physics.atmosphere import standard_density
+from cpas_bayes.core.units import STANDARD_GRAVITY
+
+AIR_PARAMETERS = ("airspeed_0", "flight_path_angle_0", "heading_0", "altitude_0", "wind_north", "wind_east",
+                  "accel_scale", "accel_bias", "gnss_latency")
+AIR_UNITS = ("m/s", "deg", "deg", "m", "m/s", "m/s", "", "g", "s")
+LATENCY_RANGE = (-0.5, 2.0)   # s: the latency prior's support
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class PriorSpec:
+    """A truncated normal prior, plain numbers (the stats layer turns it into a distribution)."""
+
+    mu: float
+    sigma: float
+    low: float
+    high: float
+
+
+@dataclass(frozen=True)
+class LoggerChannels:
+    """The samples of a logger bundle that the air-data likelihood reads, SI."""
+
+    accel_time: np.ndarray        # (N,) s, the accelerometer's readings
+    accel: np.ndarray             # (N,) g
+    accel_sigma: np.ndarray       # (N,) g
+    accel_interval: float         # s, the logger's averaging interval (1 / declared rate)
+    gnss_time: np.ndarray         # (M,) s, receiver samples kept for the likelihood
+    velocity: np.ndarray          # (M, 3) m/s north, east, up
+    velocity_sigma: np.ndarray    # (M, 3)
+    altitude_time: np.ndarray     # (A,) s
+    altitude: np.ndarray          # (A,) m
+    altitude_sigma: np.ndarray    # (A,)
+    altitude_lags: bool           # altitude samples are the receiver's (share its latency)
+    wind_altitude: np.ndarray     # (L,) the stated profile (zeros at one level without one)
+    wind_north: np.ndarray
+    wind_east: np.ndarray
+    wind_sigma: float | None      # the profile's stated sigma; None without a profile
+    first_velocity_time: float    # s, the receiver's earliest sample (kept or not): where the priors look
+    first_velocity: np.ndarray    # (3,) its ground velocity
+    density_altitude: np.ndarray  # a 1 m table of ρ(h) over the flown altitudes
+    density_table: np.ndarray
+
+    def density(self, altitude):
+        return np.interp(altitude, self.density_altitude, self.density_table)
+
+    def wind_at(self, altitude):
+        return (np.interp(altitude, self.wind_altitude, self.wind_north),
+                np.interp(altitude, self.wind_altitude, self.wind_east))
+
+
+def logger_channels(test: FlightTest) -> LoggerChannels:
+    """The likelihood's samples of a logger bundle; refuses one too short to reconstruct."""
+    d = test.data
+    spec = test.air_data
+    t_a, g = channel_samples(d, "G")
+    sigma_a = d["G_sigma"].to_numpy(float)[np.isfinite(d["G"].to_numpy(float))]
+    t_v, _ = channel_samples(d, "v_north")
+    rows = np.isfinite(d["v_north"].to_numpy(float))
+    vel = np.column_stack([d[c].to_numpy(float)[rows] for c in VELOCITY_COLUMNS])
+    vel_sigma = np.column_stack([d[f"{c}_sigma"].to_numpy(float)[rows] for c in VELOCITY_COLUMNS])
+    lo, hi = LATENCY_RANGE
+    keep = (t_v - hi >= t_a[0]) & (t_v - lo <= t_a[-1])
+    if keep.sum() < 3:
+        raise BundleError(test.label, "columns 'v_north', 'v_east', 'v_up'",
+                          f"only {int(keep.sum())} receiver sample(s) lie between {t_a[0] + hi:g} and "
+                          f"{t_a[-1] + lo:g} s, inside the accelerometer's record less the latency range",
+                          "give a record in which the accelerometer starts at least 2 s before the receiver's "
+                          "last samples")
+    t_h, h = channel_samples(d, "altitude")
+    h_rows = np.isfinite(d["altitude"].to_numpy(float))
+    h_sigma = d["altitude_sigma"].to_numpy(float)[h_rows]
+    lags = bool(np.array_equal(h_rows, rows))
+    h_keep = (t_h - (hi if lags else 0.0) >= t_a[0]) & (t_h - (lo if lags else 0.0) <= t_a[-1])
+    wind = spec.wind if spec is not None else None
+    if wind is not None:
+        w_alt, w_n, w_e, w_sigma = wind.altitude, wind.north, wind.east, float(wind.sigma)
+    else:
+        w_alt, w_n, w_e, w_sigma = np.zeros(1), np.zeros(1), np.zeros(1), None
+    speed = float(np.nanmax(np.linalg.norm(vel, axis=1)))
+    span = speed * (t_a[-1] - t_a[0]) + 2000.0
+    alt = np.arange(float(np.min(h)) - span, float(np.max(h)) + span, 1.0)
+    if "density" in d and np.isfinite(d["density"].to_numpy(float)).sum() >= 2:
+        # A measured density column: ρ against the logged altitude at the same rows.
+        both = np.isfinite(d["density"].to_numpy(float)) & np.isfinite(d["altitude"].to_numpy(float))
+        h_d, rho_d = d["altitude"].to_numpy(float)[both], d["density"].to_numpy(float)[both]
+        order = np.argsort(h_d)
+        table = np.exp(np.interp(alt, h_d[order], np.log(rho_d[order])))
+    elif spec is not None and spec.atmosphere is not None:
+        table = spec.atmosphere(alt)
+    else:
+        table = standard_density(alt)
+    return LoggerChannels(
+        accel_time=t_a, accel=g, accel_sigma=sigma_a,
+        accel_interval=sample_interval(d, "G", spec, "G"),
+        gnss_time=t_v[keep], velocity=vel[keep], velocity_sigma=vel_sigma[keep],
+        altitude_time=t_h[h_keep], altitude=h[h_keep], altitude_sigma=h_sigma[h_keep], altitude_lags=lags,
+        wind_altitude=np.asarray(w_alt, float), wind_north=np.asarray(w_n, float),
+        wind_east=np.asarray(w_e, float), wind_sigma=w_sigma, first_velocity_time=float(t_v[0]),
+        first_velocity=vel[0], density_altitude=alt, density_table=table)
+
+
+def air_priors(ch: LoggerChannels) -> dict:
+    """{parameter: PriorSpec} for :data:`AIR_PARAMETERS`, centred on the first receiver sample (module docstring)."""
+    wn, we = ch.wind_at(ch.altitude[0] if ch.altitude.size else 0.0)
+    va = ch.first_velocity - np.array([wn, we, 0.0])
+    # Carried back to the first reading along the sensed drag and gravity (first order in the gap).
+    before = ch.accel_time <= ch.first_velocity_time
+    if before.sum() > 1:
+        gap = ch.first_velocity_time - ch.accel_time[0]
+        impulse = STANDARD_GRAVITY * float(np.trapezoid(ch.accel[before], ch.accel_time[before]))
+        va = va + impulse * va / max(float(np.linalg.norm(va)), 1e-9) + np.array([0.0, 0.0, STANDARD_GRAVITY * gap])
+    speed = float(np.linalg.norm(va))
+    gamma = math.degrees(math.asin(max(-1.0, min(1.0, va[2] / max(speed, 1e-9)))))
+    heading = math.degrees(math.atan2(va[1], va[0]))
+    # Altitude at the first reading: the first altitude sample carried back along the vertical speed.
+    h0 = float(ch.altitude[0] - va[2] * (ch.altitude_time[0] - ch.accel_time[0])) if ch.altitude.size else 0.0
+    lead = abs(float(ch.gnss_time[0] - ch.accel_time[0]))
+    h_sigma = max(20.0, 3.0 * float(ch.altitude_sigma[0]) if ch.altitude.size else 20.0) + 50.0 * lead
+    s_v = max(15.0, 0.5 * speed)
+    w_sigma = 10.0 if ch.wind_sigma is None else max(ch.wind_sigma, 0.05)
+    return {
+        "airspeed_0": PriorSpec(max(speed, 1.0), s_v, max(0.5, speed - 4 * s_v), speed + 4 * s_v),
+        "flight_path_angle_0": PriorSpec(gamma, 30.0, -90.0, 90.0),
+        "heading_0": PriorSpec(heading, 90.0, heading - 180.0, heading + 180.0),
+        "altitude_0": PriorSpec(h0, h_sigma, h0 - 6 * h_sigma, h0 + 6 * h_sigma),
+        "wind_north": PriorSpec(0.0, w_sigma, -6 * w_sigma, 6 * w_sigma),
+        "wind_east": PriorSpec(0.0, w_sigma, -6 * w_sigma, 6 * w_sigma),
+        "accel_scale": PriorSpec(1.0, 0.03, 0.8, 1.25),
+        "accel_bias": PriorSpec(0.0, 0.05, -0.5, 0.5),
+        "gnss_latency": PriorSpec(0.3, 0.5, *LATENCY_RANGE),
+    }
+
+
+def initial_state(phi):
+    """The kinematics' (B, 8) state array from air parameters (B, 9) in :data:`AIR_PARAMETERS` order."""
+    phi = np.atleast_2d(phi)
+    state = np.empty((phi.shape[0], fp.N_STATE))
+    state[:, fp.AIRSPEED_0] = phi[:, 0]
+    state[:, fp.FLIGHT_PATH_ANGLE_0] = np.radians(phi[:, 1])
+    state[:, fp.HEADING_0] = np.radians(phi[:, 2])
+    state[:, fp.ALTITUDE_0] = phi[:, 3]
+    state[:, fp.WIND_NORTH] = phi[:, 4]
+    state[:, fp.WIND_EAST] = phi[:, 5]
+    state[:, fp.ACCEL_SCALE] = phi[:, 6]
+    state[:, fp.ACCEL_BIAS] = phi[:, 7]
+    return state
+
+
+@dataclass(frozen=True)
+class AirTrack:
+    """The reconstruction of B parameter sets at the accelerometer's readings."""
+
+    time: np.ndarray        # (N,)
+    air_velocity: np.ndarray  # (B, N, 3)
+    altitude: np.ndarray    # (B, N)
+    phi: np.ndarray         # (B, 9)
+    airspeed: np.ndarray    # (B, N) |air_velocity|
+
+    @property
+    def flight_path_angle(self):
+        """(B, N) deg."""
+        return np.degrees(np.arcsin(np.clip(self.air_velocity[..., 2] / np.maximum(self.airspeed, 1e-9), -1, 1)))
+
+    def ground_velocity_at(self, ch: LoggerChannels, times):
+        """Ground velocity (B, M, 3) and altitude (B, M) at ``times`` (B, M): air velocity plus the wind there."""
+        v = fp.interpolate_rows(self.time, self.air_velocity, times)
+        h = fp.interpolate_rows(self.time, self.altitude, times)
+        wn, we = ch.wind_at(h)
+        v[..., 0] += wn + self.phi[:, 4:5]
+        v[..., 1] += we + self.phi[:, 5:6]
+        return v, h
+
+
+def track(ch: LoggerChannels, phi) -> AirTrack:
+    """Reconstruct the flight for air parameters ``phi`` (B, 9)."""
+    phi = np.atleast_2d(np.asarray(phi, float))
+    # Rows that share their air parameters (a finite-difference gradient in the inflation
+    # parameters) share one reconstruction.
+    unique, inverse = np.unique(phi, axis=0, return_inverse=True)
+    if unique.shape[0] < phi.shape[0]:
+        part = track(ch, unique)
+        inverse = inverse.ravel()
+        return AirTrack(ch.accel_time, part.air_velocity[inverse], part.altitude[inverse], phi,
+                        part.airspeed[inverse])
+    v, h, speed = fp.reconstruct(ch.accel_time, ch.accel, initial_state(phi), ch.wind_altitude, ch.wind_north,
+                                 ch.wind_east)
+    return AirTrack(ch.accel_time, v, h, phi, speed)
+
+
+@dataclass(frozen=True)
+class ReceiverErrors:
+    """The joint covariance of the receiver's samples less the reconstruction, as its Cholesky factor.
+
+    Order: velocity (M, 3) row by row, then altitude (A). Two parts: the
+    receiver's stated sigmas (diagonal), and the accelerometer's noise that the
+    reconstruction integrates. A reading's error e_τ (variance (g0·σ_τ·Δt_τ/s)²)
+    moves the velocity along the flight direction v̂(τ) from then on and the
+    altitude by v̂_up(τ)·(t − τ), so the errors of later samples share it: a
+    random walk, correlated over the whole record. Counted as independent per
+    sample it would let the air parameters follow one realisation of the walk
+    (measured: scale and bias 4 sd off on a simulated 20 Hz drop). The flight
+    direction and the sample times (stamps less the prior latency) are those of a
+    first reconstruction; the error model is then fixed.
+    """
+
+    chol: np.ndarray      # (K, K) lower triangular, K = 3·M + A
+    log_det: float        # log det of the covariance
+
+
+def error_sensitivity(ch: LoggerChannels, reference: AirTrack, scale: float, velocity_times, altitude_times):
+    """How each reading's error e_j (g) moves the reconstruction: velocity (T, 3, N) at ``velocity_times`` and
+    altitude (A, N) at ``altitude_times``, linearised about ``reference`` (one row).
+
+    A reading too high by e_j decelerates the reconstruction by g0·e_j·Δt_j/s more along its flight direction
+    v̂_j. The error δv then follows the kinematics' linearisation: its part across the flight direction decays
+    at the rate a/V (the sensed drag turns toward the airspeed it acts on), its part along it stays::
+
+        dδv/dt = −(a/V)·(I − v̂v̂ᵀ)·δv,        dδh/dt = δv_up
+
+    (the shear's and density's second-order terms left out). One forward sweep over the readings carries the
+    sensitivity to every e_j at once. Signs are those of the residuals (sample − reconstruction).
+    """
+    t = ch.accel_time
+    n = t.size
+    steps = np.diff(t, prepend=t[0] - ch.accel_interval)
+    gain = STANDARD_GRAVITY * steps / scale
+    speed = np.maximum(reference.airspeed[0], 1e-6)
+    direction = reference.air_velocity[0] / speed[:, None]
+    decel = STANDARD_GRAVITY * np.clip(ch.accel - reference.phi[0, 7], 0.0, None) / scale
+    v_times, h_times = np.asarray(velocity_times, float), np.asarray(altitude_times, float)
+    v_out = np.zeros((v_times.size, 3, n))
+    h_out = np.zeros((h_times.size, n))
+    v_slot = np.searchsorted(t, v_times, side="right") - 1    # the last reading at or before each time
+    h_slot = np.searchsorted(t, h_times, side="right") - 1
+    sens = np.zeros((3, n))
+    alt = np.zeros(n)
+    for j in range(n):
+        u = direction[j]
+        rate = decel[j] / speed[j] * steps[j]
+        # the across part decays over the interval (exactly for a held rate), then the new error enters
+        sens = sens - (1.0 - np.exp(-rate)) * (sens - np.outer(u, u @ sens))
+        sens[:, j] += gain[j] * u
+        alt = alt + steps[j] * sens[2]
+        for k in np.flatnonzero(v_slot == j):
+            v_out[k] = sens
+        for k in np.flatnonzero(h_slot == j):
+            h_out[k] = alt + (h_times[k] - t[j]) * sens[2]
+    return v_out, h_out
+
+
+def walk_design(ch: LoggerChannels, reference: AirTrack, latency: float, scale: float = 1.0):
+    """How each reading's error e_j (g) moves the receiver's residuals: (K, N) coefficients (:func:`error_sensitivity`).
+
+    Rows: velocity (M, 3) row by row, then altitude (A); sample times are the stamps less ``latency``.
+    """
+    t_v = ch.gnss_time - latency
+    t_h = ch.altitude_time - (latency if ch.altitude_lags else 0.0)
+    v, h = error_sensitivity(ch, reference, scale, t_v, t_h)
+    return np.vstack([v.reshape(-1, ch.accel_time.size), h])
+
+
+def receiver_variance(ch: LoggerChannels):
+    """(K,) the receiver's stated variances, in :func:`walk_design`'s row order."""
+    return np.concatenate([ch.velocity_sigma.ravel() ** 2, ch.altitude_sigma**2])
+
+
+def receiver_errors(ch: LoggerChannels, reference: AirTrack, latency: float, scale: float = 1.0) -> ReceiverErrors:
+    """:class:`ReceiverErrors` about the reconstruction ``reference`` (one row)."""
+    design = walk_design(ch, reference, latency, scale)
+    cov = (design * ch.accel_sigma**2) @ design.T
+    cov[np.diag_indices_from(cov)] += receiver_variance(ch)
+    chol = np.linalg.cholesky(cov)
+    return ReceiverErrors(chol, float(2.0 * np.log(np.diag(chol)).sum()))
+
+
+def gnss_misfit(ch: LoggerChannels, tr: AirTrack):
+    """Receiver samples less the reconstruction: velocity (B, M, 3) and altitude (B, A)."""
+    latency = tr.phi[:, 8:9]
+    v_pred, _ = tr.ground_velocity_at(ch, ch.gnss_time[None, :] - latency)
+    t_h = ch.altitude_time[None, :] - (latency if ch.altitude_lags else 0.0)
+    h_pred = fp.interpolate_rows(tr.time, tr.altitude, np.broadcast_to(t_h, (tr.phi.shape[0], ch.altitude_time.size)))
+    return ch.velocity[None] - v_pred, ch.altitude[None] - h_pred
+
+
+def whitened_misfit(ch: LoggerChannels, tr: AirTrack, errors: ReceiverErrors):
+    """L⁻¹·(samples − reconstruction) (B, K): independent N(0, 1) under the model."""
+    from scipy.linalg import solve_triangular
+
+    dv, dh = gnss_misfit(ch, tr)
+    stacked = np.concatenate([dv.reshape(dv.shape[0], -1), dh], axis=1)
+    return solve_triangular(errors.chol, stacked.T, lower=True, check_finite=False).T
+
+
+def gnss_log_likelihood(ch: LoggerChannels, tr: AirTrack, errors: ReceiverErrors, noise=None):
+    """(B,) log-likelihood of the receiver's velocity and altitude samples, covariance noise²·Σ."""
+    z = whitened_misfit(ch, tr, errors)
+    k = z.shape[1]
+    noise = np.ones(z.shape[0]) if noise is None else np.asarray(noise, float)
+    return -0.5 * (z**2).sum(axis=1) / noise**2 - k * np.log(noise) - 0.5 * errors.log_det - 0.5 * k * _LOG_2PI
+
+
+@dataclass(frozen=True)
+class AirDataEstimate:
+    """The best-estimate trajectory: air parameters at the maximum and their covariance."""
+
+    phi: np.ndarray          # (9,)
+    covariance: np.ndarray   # (9, 9)
+    priors: dict
+    frame: pd.DataFrame      # at the accelerometer's readings: time, airspeed(_sigma), gamma, altitude, density, qbar(_sigma)
+    rms_whitened: float      # RMS of the receiver's whitened residuals at the maximum (≈ 1 when the model holds)
+    errors: ReceiverErrors   # the receiver's error model, fixed for the fit
+
+    @property
+    def sigma(self):
+        return np.sqrt(np.diag(self.covariance))
+
+
+def best_estimate_trajectory(test: FlightTest, draws=200, seed=0) -> AirDataEstimate:
+    """Maximum of the receiver's likelihood times the priors over the air parameters, and q̄ with its 1-sigma."""
+    from scipy.optimize import least_squares
+
+    ch = logger_channels(test)
+    priors = air_priors(ch)
+    spec = [priors[n] for n in AIR_PARAMETERS]
+    mu = np.array([p.mu for p in spec])
+    sd = np.array([p.sigma for p in spec])
+    low = np.array([p.low for p in spec])
+    high = np.array([p.high for p in spec])
+
+    def stacked(errors, x):
+        """Whitened residuals (rows of x (B, 9)), the priors' included: one batched reconstruction."""
+        return np.concatenate([whitened_misfit(ch, track(ch, x), errors), (x - mu) / sd], axis=1)
+
+    def solve(errors, starts):
+        def residuals(x):
+            return stacked(errors, x[None])[0]
+
+        best = None
+        for x0 in starts:
+            sol = least_squares(residuals, np.clip(x0, low + 1e-9, high - 1e-9), bounds=(low, high), x_scale=sd,
+                                diff_step=1e-6)
+            if best is None or sol.cost < best.cost:
+                best = sol
+        return best
+
+    # First pass: receiver sigmas alone, two headings (the first sample's, and reversed: a near-vertical
+    # start hides it). Second: with the integrated accelerometer noise about that reconstruction.
+    flipped = mu.copy()
+    flipped[2] = mu[2] + 180.0 if mu[2] < 0 else mu[2] - 180.0
+    diagonal = ReceiverErrors(np.diag(np.concatenate([ch.velocity_sigma.ravel(), ch.altitude_sigma])),
+                              float(2.0 * np.log(np.concatenate([ch.velocity_sigma.ravel(),
+                                                                 ch.altitude_sigma])).sum()))
+    first = solve(diagonal, (mu, flipped))
+    errors = receiver_errors(ch, track(ch, first.x[None]), latency=float(first.x[8]), scale=float(first.x[6]))
+    best = solve(errors, (first.x,))
+    # The Jacobian at the maximum by central differences of 1e-3 prior sd (one batched call): the solver's
+    # own, from its last trust-region step, understated the scale's sd tenfold on a 20 Hz drop.
+    h = 1e-3 * sd
+    probes = np.vstack([best.x + np.diag(h), best.x - np.diag(h)])
+    values = stacked(errors, probes)
+    jac = ((values[:9] - values[9:]) / (2.0 * h[:, None])).T
+    try:
+        cov = np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        cov = np.diag(sd**2)
+    phi = best.x
+    rng = np.random.default_rng(seed)
+    sample = rng.multivariate_normal(phi, 0.5 * (cov + cov.T), size=draws, method="eigh")
+    sample = np.clip(sample, low, high)
+    tr = track(ch, np.vstack([phi[None], sample]))
+    speed = tr.airspeed
+    qbar = 0.5 * ch.density(tr.altitude) * speed**2
+    frame = pd.DataFrame({"time": ch.accel_time, "airspeed": speed[0], "airspeed_sigma": speed[1:].std(axis=0),
+                          "gamma": tr.flight_path_angle[0], "altitude": tr.altitude[0],
+                          "density": ch.density(tr.altitude[0]), "qbar": qbar[0],
+                          "qbar_sigma": qbar[1:].std(axis=0)})
+    z = whitened_misfit(ch, track(ch, phi[None]), errors)
+    return AirDataEstimate(phi, cov, priors, frame, float(np.sqrt(np.mean(z**2))), errors)
+
+
+def with_best_estimate(test: FlightTest, estimate: AirDataEstimate) -> FlightTest:
+    """The test at its accelerometer readings with q̄, airspeed, γ, altitude and density from the estimate.
+
+    A test the q̄ path reads: ``reduce`` then works as for a bundle with measured
+    q̄. Its ``qbar_sigma`` is the air-data 1-sigma, which is systematic (one set
+    of air parameters moves every sample together); the fit does not read it.
+    """
+    d = test.data
+    rows = np.isfinite(d["G"].to_numpy(float))
+    keep = [c for c in d.columns if c not in VELOCITY_COLUMNS and not c.startswith("v_")
+            and c not in ("altitude", "altitude_sigma", "density")]
+    data = d.loc[rows, keep].reset_index(drop=True)
+    f = estimate.frame
+    for c in ("qbar", "qbar_sigma", "airspeed", "gamma", "altitude", "density"):
+        data[c] = f[c].to_numpy()
+    return with_data(test, data)

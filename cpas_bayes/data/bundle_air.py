@@ -1,0 +1,261 @@
+"""Reading a logger bundle: GNSS velocity and altitude in place of measured q̄ (docs/test-bundle.md).
+
+A bundle whose data.csv has neither ``qbar`` nor ``airspeed`` but velocity
+columns is a logger bundle. Its rows are the union of the accelerometer's and
+the receiver's sample times, so ``G``, the velocity components, ``altitude``,
+``density`` and the parachute channels may be blank in a row (NaN in the
+test's data); the three velocity components are blank together. Its test.toml
+may hold ``[wind]``, ``[atmosphere]`` and ``[rate]``
+(:class:`~cpas_bayes.data.air_data.AirDataSpec`); a bundle with measured q̄ may not.
+
+:mod:`cpas_bayes.data.bundle` calls these functions; ``reader`` is its
+:class:`~cpas_bayes.data.bundle.TomlReader` (``fail``, ``keys``, ``number``,
+``table``, ``units``, ``path``), passed in so that this module does not import
+the one that imports it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cpas_bayes.core.errors import BundleError
+from cpas_bayes.core.inputs import shown
+from cpas_bayes.data import limits
+from cpas_bayes.data.air_data import RATE_CHANNELS, VELOCITY_COLUMNS, AirDataSpec, DensityProfile, WindProfile, \
+    sample_interval
+from cpas_bayes.data.bundle_csv import blank_column
+from cpas_bayes.data.limits import check_column, check_value
+
+AIR_TABLES = ("wind", "atmosphere", "rate")
+WIND_KEYS = ("altitude", "north", "east", "sigma")
+ATMOSPHERE_KEYS = ("altitude", "density")
+LOGGER_COLUMNS = VELOCITY_COLUMNS + ("altitude",)   # required in a logger bundle, each with a 1-sigma
+MEASURED_COLUMNS = ("qbar", "airspeed")
+# Unit conversion of a logger bundle's own columns (bundle.COLUMN_QUANTITY holds these too).
+LOGGER_QUANTITY = {**{c: "speed" for c in VELOCITY_COLUMNS}, **{f"{c}_sigma": "speed" for c in VELOCITY_COLUMNS},
+                   "altitude_sigma": "length"}
+MIN_G_SAMPLES = 10          # fewer accelerometer samples cannot resolve an inflation
+MIN_VELOCITY_SAMPLES = 3    # a velocity history needs a start, an end and one sample between
+
+EITHER_FIX = ("either give qbar, its sigma, airspeed and gamma (measured air data), or give v_north, v_east, "
+              "v_up and altitude with their sigmas (a logger bundle; docs/test-bundle.md, \"Logger bundles\")")
+
+
+def logger_bundle(names):
+    """What data.csv's column ``names`` make of the bundle: True a logger bundle (no ``qbar`` or
+    ``airspeed``, a velocity column), False one with measured air data (``qbar`` or ``airspeed``), None
+    neither (refused by :func:`check_measured_columns`) or ``names`` unknown (None: data.csv unread)."""
+    if names is None:
+        return None
+    names = set(names)
+    if names & set(MEASURED_COLUMNS):
+        return False
+    return True if names & set(VELOCITY_COLUMNS) else None
+
+
+def sigma_channels(logger):
+    """The vehicle channels [sigma] may name (parachute columns aside), by :func:`logger_bundle`'s answer."""
+    measured, gnss = ("G", "qbar"), ("G",) + LOGGER_COLUMNS
+    return measured if logger is False else gnss if logger else measured + LOGGER_COLUMNS
+
+
+def check_measured_columns(names, path):
+    """Refuse a data.csv (``path``) that gives ``qbar`` without ``airspeed`` or the reverse, or no air data."""
+    given = [c for c in MEASURED_COLUMNS if c in names]
+    if len(given) == 2:
+        return
+    if given:
+        missing = next(c for c in MEASURED_COLUMNS if c not in given)
+        raise BundleError(path, f"column '{missing}'", f"missing column '{missing}': data.csv gives '{given[0]}' "
+                          f"but not '{missing}' (a bundle with measured air data needs qbar, airspeed and gamma)",
+                          EITHER_FIX)
+    raise BundleError(path, "columns 'qbar', 'airspeed'", "missing columns: data.csv gives neither qbar and "
+                      "airspeed (measured air data) nor v_north, v_east and v_up (GNSS velocity)", EITHER_FIX)
+
+
+# ---------------------------------------------------------------------------
+# test.toml: [wind], [atmosphere], [rate]
+
+def _is_number(value):
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _levels(reader, table, key, where, spec, what, count=None):
+    """One array of a profile table, in the bundle's units: finite, plausible, ``count`` long when given."""
+    place, values = f"{where}.{key}", table.get(key)
+    if values is None:
+        reader.fail(place, "is missing", f"add {key} = [<number>, ...], one value per altitude level")
+    if not isinstance(values, list) or not values:
+        reader.fail(place, f"must be a non-empty array of numbers, got {shown(values)}",
+                    f"write {key} = [<number>, ...], one value per altitude level (one level: a constant)")
+    for i, v in enumerate(values):
+        if not _is_number(v) or not math.isfinite(v):
+            reader.fail(f"{place}[{i}]", f"must be a finite number, got {shown(v)}", f"write a number in {key}")
+        check_value(v, spec, reader.units, reader.path, f"{place}[{i}]", what)
+    if count is not None and len(values) != count:
+        reader.fail(place, f"has {len(values)} value(s) but {where}.altitude has {count}",
+                    f"give one {key} value per altitude level, in the order of {where}.altitude")
+    return np.array(values, dtype=float)
+
+
+def _altitudes(reader, table, where):
+    h = _levels(reader, table, "altitude", where, limits.CHANNELS["altitude"], "altitude")
+    bad = np.flatnonzero(np.diff(h) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        reader.fail(f"{where}.altitude[{i}]", f"altitudes not strictly increasing ({h[i - 1]:g} then {h[i]:g})",
+                    f"list the levels of [{where}] from the lowest up, each altitude once")
+    return h
+
+
+def _wind(reader, table):
+    reader.keys(table, WIND_KEYS, "wind")
+    u, spec = reader.units, limits.AIR_DATA["wind"]
+    h = _altitudes(reader, table, "wind")
+    north = _levels(reader, table, "north", "wind", spec, "wind toward north", len(h))
+    east = _levels(reader, table, "east", "wind", spec, "wind toward east", len(h))
+    sigma = reader.number(table, "sigma", "wind.", minimum=0, optional=True, plausible=spec.sigma()) or 0.0
+    return WindProfile(u.si(h, "length"), u.si(north, "speed"), u.si(east, "speed"), float(u.si(sigma, "speed")))
+
+
+def _atmosphere(reader, table):
+    reader.keys(table, ATMOSPHERE_KEYS, "atmosphere")
+    h = _altitudes(reader, table, "atmosphere")
+    rho = _levels(reader, table, "density", "atmosphere", limits.CHANNELS["density"], "density", len(h))
+    return DensityProfile(reader.units.si(h, "length"), reader.units.si(rho, "density"))
+
+
+def parse_air_tables(doc, reader, logger):
+    """test.toml's [wind], [atmosphere] and [rate] in SI: an :class:`AirDataSpec` unless ``logger`` is False
+    (a bundle with measured q̄, which may not hold them: None)."""
+    if logger is False:
+        return None
+    tables = {key: reader.table(doc, key, "") for key in AIR_TABLES if key in doc}
+    rates = {}
+    if "rate" in tables:
+        reader.keys(tables["rate"], RATE_CHANNELS, "rate")
+        rates = {k: reader.number(tables["rate"], k, "rate.", positive=True, plausible=limits.AIR_DATA["rate"])
+                 for k in tables["rate"]}
+    return AirDataSpec(wind=_wind(reader, tables["wind"]) if "wind" in tables else None,
+                       atmosphere=_atmosphere(reader, tables["atmosphere"]) if "atmosphere" in tables else None,
+                       rates=rates)
+
+
+def refuse_air_tables(doc, reader, logger):
+    """Refuse [wind], [atmosphere] or [rate] in a bundle with measured q̄ (``logger`` False)."""
+    given = [key for key in AIR_TABLES if key in doc]
+    if logger is False and given:
+        reader.fail(given[0], f"[{given[0]}] is for a logger bundle, but data.csv has a qbar or airspeed column: a "
+                    "bundle with measured qbar already has its airspeed",
+                    f"remove the [{given[0]}] table, or drop qbar, airspeed and gamma from data.csv and give v_north, "
+                    "v_east, v_up and altitude (a logger bundle)")
+
+
+# ---------------------------------------------------------------------------
+# data.csv
+
+def _channel(raw, column, spec, units, path):
+    values = blank_column(raw, column, path)
+    return check_column(values, spec, units, path, column) if spec else values
+
+
+def _sigma(raw, column, values, sigma_table, spec, units, path, required=True):
+    """1-sigma of a channel with gaps: its ``<column>_sigma`` column or [sigma] constant where the channel has
+    a sample, NaN where it has none; 0 when not ``required`` and not given."""
+    name, present = f"{column}_sigma", np.isfinite(values)
+    if name in raw.columns:
+        sigma = blank_column(raw, name, path)
+        negative = np.flatnonzero(sigma < 0)
+        if negative.size:
+            i = int(negative[0])
+            raise BundleError(path, f"row {i + 2}, column '{name}'", f"negative sigma {sigma[i]}",
+                              "a 1-sigma is ≥ 0; correct the value")
+        check_column(sigma, spec.sigma(), units, path, name)
+        gaps = np.flatnonzero(present & np.isnan(sigma))
+        if gaps.size:
+            raise BundleError(path, f"row {int(gaps[0]) + 2}, column '{name}'",
+                              f"the cell is empty, but '{column}' has a sample in this row",
+                              f"give the sample's 1-sigma, or leave '{column}' empty too")
+    elif column in sigma_table or not required:
+        sigma = np.full(len(values), float(sigma_table.get(column, 0.0)))
+    else:
+        raise BundleError(path, f"column '{name}'", f"no 1-sigma for '{column}' (required in a logger bundle)",
+                          f"add a '{name}' column, or '{column} = <sigma>' under [sigma] in test.toml")
+    return np.where(present, sigma, np.nan)
+
+
+def _enough(values, minimum, column, what, path):
+    n = int(np.isfinite(values).sum())
+    if n < minimum:
+        raise BundleError(path, f"column '{column}'", f"{n} {what} sample(s), fewer than {minimum}",
+                          f"a logger bundle needs at least {minimum} non-empty '{column}' cells; add the samples")
+
+
+def logger_columns(raw, meta, path):
+    """A logger bundle's data columns in its own units (time aside), canonical names, NaN where blank.
+
+    ``raw`` is data.csv as cell strings, ``meta`` test.toml's
+    :class:`~cpas_bayes.data.bundle.BundleMetadata`. Refuses a missing column,
+    a velocity row with one or two blank components, too few samples, a sample
+    without its 1-sigma and implausible values, naming ``path``, row and column.
+    """
+    missing = [c for c in ("G",) + LOGGER_COLUMNS if c not in raw.columns]
+    if missing:
+        listed = ", ".join(f"'{c}'" for c in missing)
+        raise BundleError(path, f"column '{missing[0]}'", f"missing column(s) {listed}: a bundle without qbar and "
+                          "airspeed is a logger bundle, which needs G, v_north, v_east, v_up and altitude", EITHER_FIX)
+    units, sigma_table, channels = meta.units, meta.sigma, limits.CHANNELS
+    out = {"G": _channel(raw, "G", channels["G"], units, path)}
+    _enough(out["G"], MIN_G_SAMPLES, "G", "accelerometer", path)
+    out["G_sigma"] = _sigma(raw, "G", out["G"], sigma_table, channels["G"], units, path)
+
+    v = {c: _channel(raw, c, channels[c], units, path) for c in VELOCITY_COLUMNS}
+    given = np.column_stack([np.isfinite(v[c]) for c in VELOCITY_COLUMNS])
+    split = np.flatnonzero(given.any(axis=1) & ~given.all(axis=1))
+    if split.size:
+        i = int(split[0])
+        blank = [c for c, g in zip(VELOCITY_COLUMNS, given[i]) if not g]
+        raise BundleError(path, f"row {i + 2}, columns 'v_north', 'v_east', 'v_up'",
+                          f"{', '.join(blank)} empty where the other component(s) are given: a GNSS sample gives "
+                          "all three components", "fill the empty components, or leave all three empty in this row")
+    _enough(v["v_north"], MIN_VELOCITY_SAMPLES, "v_north", "velocity", path)
+    out.update(v)
+    for c in VELOCITY_COLUMNS:
+        out[f"{c}_sigma"] = _sigma(raw, c, v[c], sigma_table, channels[c], units, path)
+    out["altitude"] = _channel(raw, "altitude", channels["altitude"], units, path)
+    _enough(out["altitude"], 1, "altitude", "altitude", path)
+    out["altitude_sigma"] = _sigma(raw, "altitude", out["altitude"], sigma_table, channels["altitude"], units, path)
+    if "density" in raw.columns:
+        out["density"] = _channel(raw, "density", channels["density"], units, path)
+
+    for p in meta.parachutes:
+        for column, canonical, kind, what in ((p.load_cell, p.load_column, "F", "load_cell"),
+                                              (p.flyout_angle, p.angle_column, "theta", "flyout_angle")):
+            if not column:
+                continue
+            if column not in raw.columns:
+                raise BundleError(path, f"column '{column}'",
+                                  f"parachute {p.id!r} names {what} '{column}' but data.csv has no such column",
+                                  f"add the column or remove {what} from parachute {p.id!r} in test.toml")
+            out[canonical] = _channel(raw, column, channels[kind], units, path)
+            out[f"{canonical}_sigma"] = _sigma(raw, column, out[canonical], sigma_table, channels[kind], units,
+                                               path, required=kind == "F")
+    return out
+
+
+def air_summary(test):
+    """One line on a logger bundle's air data for ``cpas-bayes validate``, e.g. ``"GNSS velocity (41 samples
+    at 5 Hz), altitude (41 samples), wind profile (3 levels)"``."""
+    spec, data = test.air_data, test.data
+    n_v, n_h = (int(np.isfinite(data[c]).sum()) for c in ("v_north", "altitude"))
+    step = sample_interval(data, "v_north", spec, "v")
+    parts = [f"GNSS velocity ({n_v} samples at {1 / step:.3g} Hz)" if step > 0 else f"GNSS velocity ({n_v} samples)",
+             f"altitude ({n_h} samples)"]
+    if spec is not None and spec.wind is not None:
+        levels = len(spec.wind.altitude)
+        parts.append("constant wind" if levels == 1 else f"wind profile ({levels} levels)")
+    if spec is not None and spec.atmosphere is not None:
+        parts.append(f"density profile ({len(spec.atmosphere.altitude)} levels)")
+    return ", ".join(parts)

@@ -1,0 +1,313 @@
+"""The model of a logger bundle: inflation and air data fitted together to the raw accelerometer and GNSS samples.
+
+A logger bundle (no measured q̄; docs/test-bundle.md) is fitted with the same
+inflation parameters as :class:`~cpas_bayes.stats.model.TestModel` plus the nine
+systematic air-data parameters of :mod:`cpas_bayes.data.air_reconstruction`
+(initial airspeed, flight-path angle, heading and altitude, the wind profile's
+error, accelerometer scale and bias, receiver latency).
+
+For each parameter set θ:
+
+1. the flight path is reconstructed with the accelerometer as input
+   (:mod:`cpas_bayes.physics.flight_path`): airspeed V(t), altitude h(t),
+   q̄(t) = ½ρ(h)V²; each stage's V_i is V at its start;
+2. the receiver's velocity and altitude samples are compared with the
+   reconstruction at their time stamps less the latency;
+3. the accelerometer's readings, averaged in bins (one reading per bin near
+   each stage start, up to 0.1 s elsewhere), are compared with the drag model
+   (Eq. 3, 5)::
+
+       G_model(t) = q̄(t)·(Σ CDS_i(t) + CDS_V)/W_T
+       bin mean   = s·mean(G_model over the span the bin's readings average) + b
+
+   The mean over the span (Gauss–Legendre, one node per 10 ms) is what an
+   averaging logger records, so a slow logger's attenuated peak is modelled
+   rather than read as a slow inflation.
+
+The readings are both the input of step 1 and the data of step 3. Their
+errors e_j therefore reach every residual: a bin's own, and through the
+reconstruction's airspeed (a random walk) every later receiver sample and
+every later bin (q̄ ∝ V²). Steps 2 and 3 are one Gaussian, covariance
+λ²·Σ with Σ holding all of it (:func:`joint_errors`; λ = ``noise_acc``
+scales both sensors' stated sigmas). The inflation model never enters step 1,
+so the airspeed does not bend to fit it.
+
+Step 3 is shown in drag-area units so that every figure and check of the
+q̄ path reads it unchanged: with the best-estimate q̄_ref (the air parameters'
+maximum, fixed before sampling) each bin becomes the observation
+acc = W_T,stated·mean reading/q̄_ref − CDS_V,stated, its 1-sigma the marginal
+one, and the prediction is mapped by the same fixed affine transform; q̄_ref
+sets the units of that view, not the fit.
+
+Extensions (added mass, breathing, ...) are not yet available on this model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from cpas_bayes.data import air_reconstruction as air
+from cpas_bayes.data.bundle import FlightTest
+from cpas_bayes.physics import flight_path as fp
+from cpas_bayes.physics.inflation import cluster_drag_area
+from cpas_bayes.stats.distributions import TruncNormal
+from cpas_bayes.stats.model import TestModel
+from cpas_bayes.stats.model_parts import Parameter, Prediction
+from cpas_bayes.stats.observations import STEADY_BIN, TRANSIENT_BIN, TRANSIENT_WINDOW, Observations
+
+AVERAGING_STEP = 0.01   # s between the points that average the model over a reading's interval
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class ReadingBins:
+    """How the model averages over each bin of readings: Gauss–Legendre nodes over the span the bin averages.
+
+    A bin of m consecutive readings (interval Δ each) is their mean, which equals the mean of the
+    sensed load factor over their joint span (t_first − Δ, t_last]; M = ⌈span/10 ms⌉ nodes cover it.
+    """
+
+    node_time: np.ndarray     # (K,) s, increasing
+    node_weight: np.ndarray   # (K,) each bin's weights sum to 1
+    first_node: np.ndarray    # (N,) index of each bin's first node
+    q_ref: np.ndarray         # (N,) the best-estimate q̄ that maps a bin's mean reading to drag-area units
+    first_reading: np.ndarray  # (N,) index of each bin's first reading
+    readings: np.ndarray      # (N,) readings per bin
+
+
+def reading_edges(test: FlightTest, time, interval):
+    """Edges of the reading bins: one reading per bin near each stage start, up to 0.1 s elsewhere."""
+    width = np.full(time.size, STEADY_BIN)
+    for p in test.parachutes:
+        before, after = TRANSIENT_WINDOW[p.inflation]
+        for st in p.stages:
+            near = (time >= st.start - before - 4 * st.start_sigma) & (time <= st.start + after + 4 * st.start_sigma)
+            width[near] = np.minimum(width[near], TRANSIENT_BIN[p.inflation])
+    per_bin = np.maximum(1, np.floor(width / max(interval, 1e-9) + 1e-9).astype(int))
+    edges, i = [0], 0
+    while i < time.size:
+        j = i + 1
+        while j < time.size and j - i < per_bin[i] and per_bin[j] == per_bin[i]:
+            j += 1
+        edges.append(j)
+        i = j
+    return np.asarray(edges)
+
+
+def logger_observations(test: FlightTest, estimate: air.AirDataEstimate, channels: air.LoggerChannels):
+    """The reading bins as drag areas with the best-estimate q̄ (module docstring), and their :class:`ReadingBins`."""
+    f = estimate.frame
+    t, g = channels.accel_time, channels.accel
+    interval = max(channels.accel_interval, 1e-6)
+    edges = reading_edges(test, t, interval)
+    lo, hi = edges[:-1], edges[1:]
+    count = hi - lo
+    g_bin = np.add.reduceat(g, lo) / count
+    sigma = np.sqrt(np.add.reduceat(channels.accel_sigma**2, lo)) / count   # the model replaces it (joint_errors)
+    span_start, span_end = t[lo] - interval, t[hi - 1]
+    centre = 0.5 * (span_start + span_end)
+    q_ref = np.interp(centre, t, f["qbar"].to_numpy())
+    times, weights, first = [], [], []
+    for a, b in zip(span_start, span_end):
+        m = max(1, int(math.ceil((b - a) / AVERAGING_STEP - 1e-9)))
+        nodes, w = np.polynomial.legendre.leggauss(m)
+        first.append(sum(len(x) for x in times))
+        times.append(a + (b - a) * (nodes + 1.0) / 2.0)
+        weights.append(w / 2.0)
+    bins = ReadingBins(np.concatenate(times), np.concatenate(weights), np.asarray(first), q_ref, lo, count)
+    n = lo.size
+    empty = np.empty((0, n))
+    w_stated = test.total_weight
+    obs = Observations(
+        time=centre, acc=w_stated * g_bin / q_ref - test.vehicle.cds,
+        acc_sigma=w_stated * sigma / q_ref, acc_qbar=np.zeros(n),
+        lc=empty, lc_sigma=empty, lc_qbar=empty, lc_weight_term=empty, lc_index=np.zeros(0, dtype=int),
+        samples_per_bin=count, native_time=t,
+        native_airspeed=f["airspeed"].to_numpy(), native_qbar=f["qbar"].to_numpy(), native_g=g,
+        native_density=f["density"].to_numpy(), native_gamma=np.radians(f["gamma"].to_numpy()),
+        stated_vehicle_weight=test.vehicle.weight, stated_vehicle_cds=test.vehicle.cds)
+    return obs, bins
+
+
+def speed_bend(ch: air.LoggerChannels, times, right):
+    """(T,) what the airspeed inside a reading's interval adds to the chord between the readings' speeds.
+
+    The reconstruction holds each reading's deceleration over its interval, so its speed is linear there.
+    The true deceleration changes inside the interval (fast during a fill); with the rate k of the readings'
+    deceleration (centred difference), a deceleration ā + k·(t − t_mid) keeps the interval's mean and bends
+    the speed above the chord by (k/2)·((Δ/2)² − (t − t_mid)²): at 20 Hz, ~0.1 m/s at a fill's middle,
+    a 0.3 % error in q̄ otherwise.
+    """
+    t = ch.accel_time
+    decel = air.STANDARD_GRAVITY * ch.accel
+    rate = np.gradient(decel, t) if t.size > 2 else np.zeros(t.size)
+    j = np.asarray(right)
+    width = t[j] - t[j - 1]
+    middle = t[j] - 0.5 * width
+    inside = (np.asarray(times) > t[j - 1]) & (np.asarray(times) <= t[j])
+    return np.where(inside, 0.5 * rate[j] * ((0.5 * width) ** 2 - (np.asarray(times) - middle) ** 2), 0.0)
+
+
+def joint_errors(ch: air.LoggerChannels, estimate: air.AirDataEstimate, bins: ReadingBins):
+    """Cholesky factor and log det of the joint covariance Σ of [receiver samples; reading bins], and each bin's
+    marginal sigma (g).
+
+    Every term is linear in the readings' errors e_j (variance σ_j²) or is the receiver's own noise:
+
+    * a bin's mean reading holds its own readings' errors (1/m each);
+    * the reconstruction integrates every earlier error into its airspeed (:func:`~cpas_bayes.data.
+      air_reconstruction.walk_design`), which moves the receiver's residuals and, through q̄ ∝ V², a later
+      bin's predicted reading by (2·G/V)·(v̂_bin·δv).
+
+    So the receiver's residuals and the bins' are correlated, a random walk shared by all of them; Σ holds it
+    whole. The flight direction, G/V and the sample times come from the best estimate, fixed before sampling.
+    """
+    reference = air.track(ch, estimate.phi[None])
+    latency, scale = float(estimate.phi[8]), float(estimate.phi[6])
+    design_r = air.walk_design(ch, reference, latency, scale)
+    t = ch.accel_time
+    n_read, n_bin = t.size, bins.first_reading.size
+    own = np.zeros((n_bin, n_read))
+    rows = np.repeat(np.arange(n_bin), bins.readings)
+    own[rows, np.arange(n_read)] = 1.0 / bins.readings[rows]
+    last = bins.first_reading + bins.readings - 1
+    centre = 0.5 * (t[bins.first_reading] - ch.accel_interval + t[last])
+    speed = np.interp(centre, t, reference.airspeed[0])
+    u_bin = np.column_stack([np.interp(centre, t, reference.air_velocity[0, :, c]) for c in range(3)])
+    u_bin /= np.maximum(np.linalg.norm(u_bin, axis=1), 1e-9)[:, None]
+    g_bin = np.add.reduceat(ch.accel, bins.first_reading) / bins.readings
+    # The airspeed error at the bin's centre, from readings before its span (its own are in ``own``).
+    sens, _ = air.error_sensitivity(ch, reference, scale, t[bins.first_reading] - ch.accel_interval, np.zeros(0))
+    walk = (2.0 * np.abs(g_bin) / np.maximum(speed, 1.0))[:, None] * np.einsum("bc,bcn->bn", u_bin, sens)
+    design = np.vstack([design_r, own + walk])
+    cov = (design * ch.accel_sigma**2) @ design.T
+    cov[np.diag_indices_from(cov)] += np.concatenate([air.receiver_variance(ch), np.zeros(n_bin)])
+    chol = np.linalg.cholesky(cov)
+    marginal = np.sqrt(np.diag(cov)[design_r.shape[0]:])
+    return chol, float(2.0 * np.log(np.diag(chol)).sum()), marginal
+
+
+class LoggerModel(TestModel):
+    """:class:`TestModel` of a logger bundle: the air-data parameters join the inflation parameters."""
+
+    def __init__(self, test: FlightTest, kind_priors: dict, nuisance, decay="linear", extensions=(),
+                 cluster="individual", below_previous="drop", estimate=None):
+        if extensions:
+            raise ValueError("model extensions are not yet available for logger bundles (no measured qbar); "
+                             "fit the baseline model")
+        self.channels = air.logger_channels(test)
+        self.air_estimate = estimate if estimate is not None else air.best_estimate_trajectory(test)
+        self._air_priors = self.air_estimate.priors
+        obs, self.bins = logger_observations(test, self.air_estimate, self.channels)
+        super().__init__(test, obs, kind_priors, nuisance, decay=decay, extensions=(), cluster=cluster,
+                         below_previous=below_previous)
+        self._air_index = np.array([self.index[n] for n in air.AIR_PARAMETERS])
+        self._errors_chol, self._errors_log_det, marginal = joint_errors(self.channels, self.air_estimate, self.bins)
+        # Per-bin diagnostics (pointwise log-likelihood, residual checks) read the marginal sigmas.
+        self.obs = replace(obs, acc_sigma=self.stated_total_weight * marginal / self.bins.q_ref)
+        self._w_acc = 1.0 / self.obs.acc_sigma**2
+        self._a_acc = self.obs.acc_qbar * self._w_acc
+        self._ll_const = -0.5 * (np.log(self.obs.acc_sigma**2) + np.log(self._denom) + _LOG_2PI)
+        # The averaging nodes are the same for every row: their interpolation weights on the reconstruction's
+        # time base (the readings), once.
+        t = self.channels.accel_time
+        q = np.clip(self.bins.node_time, t[0], t[-1])
+        self._node_right = np.clip(np.searchsorted(t, q, side="left"), 1, t.size - 1)
+        self._node_frac = (q - t[self._node_right - 1]) / (t[self._node_right] - t[self._node_right - 1])
+        self._node_speed_bend = speed_bend(self.channels, self.bins.node_time, self._node_right)
+
+    # -- parameters -------------------------------------------------------
+
+    def _build_parameters(self):
+        params = super()._build_parameters()
+        units = dict(zip(air.AIR_PARAMETERS, air.AIR_UNITS))
+        for name in air.AIR_PARAMETERS:
+            p = self._air_priors[name]
+            params.append(Parameter(name, TruncNormal(p.mu, p.sigma, p.low, p.high), units[name], "air data"))
+        return params
+
+    @property
+    def name(self):
+        return "baseline"
+
+    def initial_values(self):
+        """The best-estimate trajectory's air parameters: the MAP search starts there."""
+        return dict(zip(air.AIR_PARAMETERS, self.air_estimate.phi))
+
+    # -- forward model ------------------------------------------------------
+
+    def air_track(self, theta) -> air.AirTrack:
+        """The reconstructed flight of each row of θ."""
+        return air.track(self.channels, np.atleast_2d(theta)[:, self._air_index])
+
+    def gather_stages(self, theta):
+        """As :meth:`TestModel.gather_stages`, plus the reconstruction and each stage's airspeed V_i."""
+        theta = np.atleast_2d(theta)
+        stage = super().gather_stages(theta)
+        tr = self.air_track(theta)
+        start = stage["start"]
+        B = theta.shape[0]
+        stage["track"] = tr
+        stage["v_start"] = fp.interpolate_rows(tr.time, tr.airspeed, start.reshape(B, -1)).reshape(start.shape)
+        return stage
+
+    def drag_areas(self, stage, t):
+        if np.ndim(t) == 3:
+            t = t[:, 0, :]
+        return cluster_drag_area(
+            t, stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter,
+            stage["n_p"], stage["expopen"], stage["ck"], stage["tk"], stage["v_start"],
+            n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p",
+            below_previous=self.below_previous)
+
+    def _predict(self, theta):
+        theta = np.atleast_2d(theta)
+        values = self.values(theta)
+        stage = self.gather_stages(theta)
+        tr = stage["track"]
+        B, N = theta.shape[0], self.obs.n_bins
+        # Speed is linear in time within a reading's interval up to gravity's share (the sensed drag is held
+        # there), so speed and density are interpolated and then squared, not q̄ itself.
+        right, w = self._node_right, self._node_frac
+        speed, rho = tr.airspeed, self.channels.density(tr.altitude)
+        v_node = speed[:, right - 1] + w * (speed[:, right] - speed[:, right - 1]) + self._node_speed_bend
+        q_node = 0.5 * (rho[:, right - 1] + w * (rho[:, right] - rho[:, right - 1])) * v_node**2
+        cds, timing = self.drag_areas(stage, self.bins.node_time)
+        total_weight = values["vehicle_weight"] + self.chute_weight.sum()
+        g_node = q_node * (cds.sum(axis=1) + values["vehicle_cds"][:, None]) / total_weight[:, None]
+        weight, first = self.bins.node_weight, self.bins.first_node
+        g_mean = np.add.reduceat(g_node * weight, first, axis=1)
+        reading = values["accel_scale"][:, None] * g_mean + values["accel_bias"][:, None]
+        acc = self.stated_total_weight * reading / self.bins.q_ref[None] - self.obs.stated_vehicle_cds
+        cds_mean = np.add.reduceat(cds * weight, first, axis=2)
+        pred = Prediction(acc=acc, lc=np.empty((B, 0, N)), cds=cds_mean,
+                          timing=timing, noise_acc=values["noise_acc"], noise_lc=np.ones(B))
+        return pred, tr
+
+    def predict(self, theta):
+        return self._predict(theta)[0]
+
+    # -- likelihood -----------------------------------------------------------
+
+    def joint_residuals(self, theta):
+        """The receiver's residuals (B, K) and the reading bins' (B, N, in g), and the prediction."""
+        theta = np.atleast_2d(theta)
+        pred, tr = self._predict(theta)
+        dv, dh = air.gnss_misfit(self.channels, tr)
+        readings = (self.obs.acc[None] - pred.acc) * self.bins.q_ref[None] / self.stated_total_weight
+        return np.concatenate([dv.reshape(dv.shape[0], -1), dh, readings], axis=1), pred
+
+    def log_likelihood(self, theta):
+        """Receiver samples and reading bins jointly normal, covariance noise_acc²·Σ (:func:`joint_errors`), (B,)."""
+        from scipy.linalg import solve_triangular
+
+        theta = np.atleast_2d(theta)
+        r, pred = self.joint_residuals(theta)
+        z = solve_triangular(self._errors_chol, r.T, lower=True, check_finite=False).T
+        k = z.shape[1]
+        noise = pred.noise_acc
+        return -0.5 * (z**2).sum(axis=1) / noise**2 - k * np.log(noise) - 0.5 * self._errors_log_det \
+            - 0.5 * k * _LOG_2PI
