@@ -100,4 +100,16 @@ def test_logger_fits_cover_the_true_inflation_and_air_parameters():
             if not ok:
                 misses.append((seed, name, truth[name], lo, hi))
     assert total >= 40
+    print(f"logger coverage {inside}/{total}; misses {misses}")
     assert inside / total >= 0.80, misses
+
+
+def test_a_slow_logger_is_warned_about_in_words_that_fit_the_averaging_model():
+    from cpas_bayes.inference import fit_health
+
+    test, _ = synthesize_logger("logger-drop", 2)
+    model = prepare_model(test, reduce_test(test))
+    draws = {"M1.s1.t_fp": np.full(100, 0.2)}
+    (w,) = fit_health.sample_rate_warnings(model, draws, sample_interval=0.05)     # 4 readings at 20 Hz
+    assert w["code"] == "sample_rate" and "averages over each reading's interval" in w["message"]
+    assert fit_health.sample_rate_warnings(model, draws, sample_interval=0.005) == []

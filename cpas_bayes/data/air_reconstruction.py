@@ -116,19 +116,20 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     rows = np.isfinite(d["v_north"].to_numpy(float))
     vel = np.column_stack([d[c].to_numpy(float)[rows] for c in VELOCITY_COLUMNS])
     vel_sigma = np.column_stack([d[f"{c}_sigma"].to_numpy(float)[rows] for c in VELOCITY_COLUMNS])
+    # Samples stamped after the first reading and, at the lowest latency, before the last: a fixed set. One that
+    # a latency puts before the first reading sees the state extended at its first acceleration (≤ 2 s).
     lo, hi = LATENCY_RANGE
-    keep = (t_v - hi >= t_a[0]) & (t_v - lo <= t_a[-1])
+    keep = (t_v >= t_a[0]) & (t_v - lo <= t_a[-1])
     if keep.sum() < 3:
         raise BundleError(test.label, "columns 'v_north', 'v_east', 'v_up'",
-                          f"only {int(keep.sum())} receiver sample(s) lie between {t_a[0] + hi:g} and "
-                          f"{t_a[-1] + lo:g} s, inside the accelerometer's record less the latency range",
-                          "give a record in which the accelerometer starts at least 2 s before the receiver's "
-                          "last samples")
+                          f"only {int(keep.sum())} receiver sample(s) lie between {t_a[0]:g} and "
+                          f"{t_a[-1] + lo:g} s, inside the accelerometer's record",
+                          "give a record in which the accelerometer's readings span the receiver's samples")
     t_h, h = channel_samples(d, "altitude")
     h_rows = np.isfinite(d["altitude"].to_numpy(float))
     h_sigma = d["altitude_sigma"].to_numpy(float)[h_rows]
     lags = bool(np.array_equal(h_rows, rows))
-    h_keep = (t_h - (hi if lags else 0.0) >= t_a[0]) & (t_h - (lo if lags else 0.0) <= t_a[-1])
+    h_keep = (t_h >= t_a[0]) & (t_h - (lo if lags else 0.0) <= t_a[-1])
     wind = spec.wind if spec is not None else None
     if wind is not None:
         w_alt, w_n, w_e, w_sigma = wind.altitude, wind.north, wind.east, float(wind.sigma)
@@ -221,8 +222,8 @@ class AirTrack:
 
     def ground_velocity_at(self, ch: LoggerChannels, times):
         """Ground velocity (B, M, 3) and altitude (B, M) at ``times`` (B, M): air velocity plus the wind there."""
-        v = fp.interpolate_rows(self.time, self.air_velocity, times)
-        h = fp.interpolate_rows(self.time, self.altitude, times)
+        v = fp.interpolate_rows(self.time, self.air_velocity, times, before="linear")
+        h = fp.interpolate_rows(self.time, self.altitude, times, before="linear")
         wn, we = ch.wind_at(h)
         v[..., 0] += wn + self.phi[:, 4:5]
         v[..., 1] += we + self.phi[:, 5:6]
@@ -336,7 +337,8 @@ def gnss_misfit(ch: LoggerChannels, tr: AirTrack):
     latency = tr.phi[:, 8:9]
     v_pred, _ = tr.ground_velocity_at(ch, ch.gnss_time[None, :] - latency)
     t_h = ch.altitude_time[None, :] - (latency if ch.altitude_lags else 0.0)
-    h_pred = fp.interpolate_rows(tr.time, tr.altitude, np.broadcast_to(t_h, (tr.phi.shape[0], ch.altitude_time.size)))
+    h_pred = fp.interpolate_rows(tr.time, tr.altitude, np.broadcast_to(t_h, (tr.phi.shape[0], ch.altitude_time.size)),
+                                 before="linear")
     return ch.velocity[None] - v_pred, ch.altitude[None] - h_pred
 
 
@@ -367,6 +369,7 @@ class AirDataEstimate:
     frame: pd.DataFrame      # at the accelerometer's readings: time, airspeed(_sigma), gamma, altitude, density, qbar(_sigma)
     rms_whitened: float      # RMS of the receiver's whitened residuals at the maximum (≈ 1 when the model holds)
     errors: ReceiverErrors   # the receiver's error model, fixed for the fit
+    receiver: pd.DataFrame   # the receiver's samples against the reconstruction at the maximum (time = stamp)
 
     @property
     def sigma(self):
@@ -432,8 +435,13 @@ def best_estimate_trajectory(test: FlightTest, draws=200, seed=0) -> AirDataEsti
                           "gamma": tr.flight_path_angle[0], "altitude": tr.altitude[0],
                           "density": ch.density(tr.altitude[0]), "qbar": qbar[0],
                           "qbar_sigma": qbar[1:].std(axis=0)})
-    z = whitened_misfit(ch, track(ch, phi[None]), errors)
-    return AirDataEstimate(phi, cov, priors, frame, float(np.sqrt(np.mean(z**2))), errors)
+    best_track = track(ch, phi[None])
+    z = whitened_misfit(ch, best_track, errors)
+    ground, _ = best_track.ground_velocity_at(ch, ch.gnss_time[None, :] - phi[8])
+    receiver = pd.DataFrame({"time": ch.gnss_time, "ground_speed": np.linalg.norm(ch.velocity, axis=1),
+                             "v_up": ch.velocity[:, 2], "ground_speed_model": np.linalg.norm(ground[0], axis=1),
+                             "v_up_model": ground[0, :, 2]})
+    return AirDataEstimate(phi, cov, priors, frame, float(np.sqrt(np.mean(z**2))), errors, receiver)
 
 
 def with_best_estimate(test: FlightTest, estimate: AirDataEstimate) -> FlightTest:

@@ -102,13 +102,9 @@ def replicate_data(model, pred, rng):
     y_rep,c = ŷ_c + λ_c·(σ_c·z_c + u_c·z_q): independent parts z_c per channel and bin,
     one shared q̄ draw z_q per bin (u = 0 for observations without a shared part).
     """
-    obs = model.obs
-    acc_q, lc_q = _shared_qbar_parts(obs)
-    shared = rng.standard_normal(pred["acc"].shape)
-    acc = pred["acc"] + pred["noise_acc"][:, None] * (obs.acc_sigma * rng.standard_normal(pred["acc"].shape)
-                                                      + acc_q * shared)
-    lc = pred["lc"] + pred["noise_lc"][:, None, None] * (obs.lc_sigma * rng.standard_normal(pred["lc"].shape)
-                                                         + lc_q * shared[:, None, :])
+    acc_noise, lc_noise = model.replicated_noise(rng, pred["acc"].shape[0])
+    acc = pred["acc"] + pred["noise_acc"][:, None] * acc_noise
+    lc = pred["lc"] + pred["noise_lc"][:, None, None] * lc_noise
     return acc, lc
 
 

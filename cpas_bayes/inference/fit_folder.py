@@ -281,11 +281,9 @@ def build_datatree(model, sampling, rng, budget=1000):
         log_likelihood.update(acc=ll_acc.reshape(shape + ll_acc.shape[1:]), lc=ll_lc.reshape(shape + ll_lc.shape[1:]))
     # Replicated data with the likelihood's error structure: independent parts plus
     # one shared q̄ draw per bin.
-    shared = rng.standard_normal(pred.acc.shape)
-    acc_pp = pred.acc + pred.noise_acc[:, None] * (obs.acc_sigma * rng.standard_normal(pred.acc.shape)
-                                                   + obs.acc_qbar * shared)
-    lc_pp = pred.lc + pred.noise_lc[:, None, None] * (obs.lc_sigma * rng.standard_normal(pred.lc.shape)
-                                                      + obs.lc_qbar * shared[:, None, :])
+    acc_noise, lc_noise = model.replicated_noise(rng, pred.acc.shape[0])
+    acc_pp = pred.acc + pred.noise_acc[:, None] * acc_noise
+    lc_pp = pred.lc + pred.noise_lc[:, None, None] * lc_noise
     acc_pp = acc_pp.reshape(shape + acc_pp.shape[1:])
     lc_pp = lc_pp.reshape(shape + lc_pp.shape[1:])
 

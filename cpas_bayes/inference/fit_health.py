@@ -180,11 +180,16 @@ def sample_rate_warnings(model, draws, sample_interval):
             fill = float(np.median(t_fp))
             samples = fill / sample_interval
             if 0 < samples < MIN_SAMPLES_PER_FILL:
+                if getattr(model, "averages_readings", False):
+                    effect = ("the model averages over each reading's interval, so the peak is not read low, "
+                              "but the fill's shape (n_p, expopen, C_k) rests on those few readings")
+                else:
+                    effect = "the samples may straddle the peak, so C_k and n_p may read low"
                 out.append(warning(
                     "sample_rate",
                     f"{p.id} stage {k + 1} reaches its peak in {fill:.3f} s, {samples:.1f} samples at "
-                    f"{1 / sample_interval:.0f} Hz: the samples may straddle the peak, so C_k and n_p may read low; "
-                    "log faster or treat this stage's peak with care", f"{p.id}.{stage_tag(k)}.n_p"))
+                    f"{1 / sample_interval:.0f} Hz: {effect}; log faster or treat this stage's peak with care",
+                    f"{p.id}.{stage_tag(k)}.n_p"))
     return out
 
 

@@ -1,4 +1,5 @@
-"""Output of a reduction: ``reduced.csv``, ``reduction.json`` and ``reduction.png``.
+"""Output of a reduction: ``reduced.csv``, ``reduction.json`` and ``reduction.png``; for a logger bundle also
+``air_data.csv`` and ``air_data.png`` (the best-estimate trajectory, SI).
 
 The table and the JSON are in the bundle's units; the columns and keys are
 those of :class:`cpas_bayes.data.reduction.Reduction` (``csv_columns``,
@@ -15,6 +16,7 @@ from cpas_bayes.core.files import write_csv, write_json
 from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.data.reduction import Reduction
 from cpas_bayes.outputs.figures import save_figure
+from cpas_bayes.outputs.plots.air_data import plot_air_data
 from cpas_bayes.outputs.plots.reduction import plot_reduction
 
 
@@ -27,10 +29,18 @@ def write_reduction(reduction: Reduction, out):
     summary = reduction.to_json()
     fig = plot_reduction(reduction)
     paths = {"csv": out / "reduced.csv", "json": out / "reduction.json", "png": out / "reduction.png"}
+    air = reduction.air_estimate
+    air_fig = plot_air_data(air, reduction.test.name) if air is not None else None
     try:
         write_csv(paths["csv"], table, float_format="%.9g")
         write_json(paths["json"], summary)
         save_figure(fig, paths["png"], dpi=110)
+        if air is not None:   # a logger bundle: its best-estimate trajectory, SI
+            paths["air_csv"], paths["air_png"] = out / "air_data.csv", out / "air_data.png"
+            write_csv(paths["air_csv"], air.frame, float_format="%.9g")
+            save_figure(air_fig, paths["air_png"], dpi=110)
     finally:
         plt.close(fig)
+        if air_fig is not None:
+            plt.close(air_fig)
     return paths

@@ -130,15 +130,19 @@ def reconstruct(time, reading, state, wind_altitude=None, wind_north=None, wind_
     return out_v, out_h, out_speed
 
 
-def interpolate_rows(time, values, query):
+def interpolate_rows(time, values, query, before="hold"):
     """Per row b, ``values`` (B, N, ...) linearly interpolated at ``query`` (B, M) on the common ``time`` (N,).
 
-    Queries outside the time base are held at its ends.
+    Queries after the time base are held at its end; before it, held (``before="hold"``) or extended along
+    the first interval's slope (``"linear"``: a velocity at the first reading's acceleration, for receiver
+    samples that a latency puts before the first reading).
     """
     time = np.asarray(time, float)
     q = np.clip(query, time[0], time[-1])
     j = np.clip(np.searchsorted(time, q, side="right"), 1, time.size - 1)
     t_lo, t_hi = time[j - 1], time[j]
+    if before == "linear":
+        q = np.minimum(query, time[-1])   # below time[0] the first interval's line continues
     f = (q - t_lo) / (t_hi - t_lo)
     rows = np.arange(values.shape[0])[:, None]
     lo, hi = values[rows, j - 1], values[rows, j]

@@ -48,6 +48,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from cpas_bayes.data import air_reconstruction as air
 from cpas_bayes.data.bundle import FlightTest
@@ -152,8 +153,7 @@ def speed_bend(ch: air.LoggerChannels, times, right):
 
 
 def joint_errors(ch: air.LoggerChannels, estimate: air.AirDataEstimate, bins: ReadingBins):
-    """Cholesky factor and log det of the joint covariance Σ of [receiver samples; reading bins], and each bin's
-    marginal sigma (g).
+    """Cholesky factor and log det of the joint covariance Σ of [receiver samples; reading bins] (g for bins).
 
     Every term is linear in the readings' errors e_j (variance σ_j²) or is the receiver's own noise:
 
@@ -186,12 +186,13 @@ def joint_errors(ch: air.LoggerChannels, estimate: air.AirDataEstimate, bins: Re
     cov = (design * ch.accel_sigma**2) @ design.T
     cov[np.diag_indices_from(cov)] += np.concatenate([air.receiver_variance(ch), np.zeros(n_bin)])
     chol = np.linalg.cholesky(cov)
-    marginal = np.sqrt(np.diag(cov)[design_r.shape[0]:])
-    return chol, float(2.0 * np.log(np.diag(chol)).sum()), marginal
+    return chol, float(2.0 * np.log(np.diag(chol)).sum())
 
 
 class LoggerModel(TestModel):
     """:class:`TestModel` of a logger bundle: the air-data parameters join the inflation parameters."""
+
+    averages_readings = True   # the prediction is each reading's interval mean (fit health words its rate warning so)
 
     def __init__(self, test: FlightTest, kind_priors: dict, nuisance, decay="linear", extensions=(),
                  cluster="individual", below_previous="drop", estimate=None):
@@ -205,9 +206,14 @@ class LoggerModel(TestModel):
         super().__init__(test, obs, kind_priors, nuisance, decay=decay, extensions=(), cluster=cluster,
                          below_previous=below_previous)
         self._air_index = np.array([self.index[n] for n in air.AIR_PARAMETERS])
-        self._errors_chol, self._errors_log_det, marginal = joint_errors(self.channels, self.air_estimate, self.bins)
-        # Per-bin diagnostics (pointwise log-likelihood, residual checks) read the marginal sigmas.
-        self.obs = replace(obs, acc_sigma=self.stated_total_weight * marginal / self.bins.q_ref)
+        chol, self._errors_log_det = joint_errors(self.channels, self.air_estimate, self.bins)
+        # Receiver first, bins second: L = [[L_rr, 0], [L_gr, L_gg]]. Given the receiver's residuals r, the
+        # bins' errors have mean L_gr·L_rr⁻¹·r (the walk the receiver saw) and covariance L_gg·L_ggᵀ.
+        k = chol.shape[0] - self.bins.q_ref.size
+        self._chol_rr, self._chol_gr, self._chol_gg = chol[:k, :k], chol[k:, :k], chol[k:, k:]
+        # Per-bin diagnostics (pointwise log-likelihood, residual checks) read the conditional marginal sigmas.
+        conditional = np.sqrt((self._chol_gg**2).sum(axis=1))
+        self.obs = replace(obs, acc_sigma=self.stated_total_weight * conditional / self.bins.q_ref)
         self._w_acc = 1.0 / self.obs.acc_sigma**2
         self._a_acc = self.obs.acc_qbar * self._w_acc
         self._ll_const = -0.5 * (np.log(self.obs.acc_sigma**2) + np.log(self._denom) + _LOG_2PI)
@@ -281,33 +287,36 @@ class LoggerModel(TestModel):
         weight, first = self.bins.node_weight, self.bins.first_node
         g_mean = np.add.reduceat(g_node * weight, first, axis=1)
         reading = values["accel_scale"][:, None] * g_mean + values["accel_bias"][:, None]
+        # What the receiver's residuals say about the walk in these readings (the conditional mean).
+        dv, dh = air.gnss_misfit(self.channels, tr)
+        z_r = solve_triangular(self._chol_rr, np.concatenate([dv.reshape(B, -1), dh], axis=1).T, lower=True,
+                               check_finite=False)
+        reading = reading + (self._chol_gr @ z_r).T
         acc = self.stated_total_weight * reading / self.bins.q_ref[None] - self.obs.stated_vehicle_cds
         cds_mean = np.add.reduceat(cds * weight, first, axis=2)
         pred = Prediction(acc=acc, lc=np.empty((B, 0, N)), cds=cds_mean,
                           timing=timing, noise_acc=values["noise_acc"], noise_lc=np.ones(B))
-        return pred, tr
+        return pred, z_r.T
 
     def predict(self, theta):
         return self._predict(theta)[0]
 
+    def replicated_noise(self, rng, n):
+        """n draws of the bins' errors in drag-area units given the receiver's samples, correlated as the
+        likelihood says (no load cells)."""
+        z = rng.standard_normal((n, self.obs.n_bins)) @ self._chol_gg.T
+        return z * self.stated_total_weight / self.bins.q_ref, np.zeros((n, 0, self.obs.n_bins))
+
     # -- likelihood -----------------------------------------------------------
 
-    def joint_residuals(self, theta):
-        """The receiver's residuals (B, K) and the reading bins' (B, N, in g), and the prediction."""
-        theta = np.atleast_2d(theta)
-        pred, tr = self._predict(theta)
-        dv, dh = air.gnss_misfit(self.channels, tr)
-        readings = (self.obs.acc[None] - pred.acc) * self.bins.q_ref[None] / self.stated_total_weight
-        return np.concatenate([dv.reshape(dv.shape[0], -1), dh, readings], axis=1), pred
-
     def log_likelihood(self, theta):
-        """Receiver samples and reading bins jointly normal, covariance noise_acc²·Σ (:func:`joint_errors`), (B,)."""
-        from scipy.linalg import solve_triangular
-
+        """Receiver samples and reading bins jointly normal, covariance noise_acc²·Σ (:func:`joint_errors`), (B,):
+        log p(receiver) + log p(bins | receiver), which is the joint exactly."""
         theta = np.atleast_2d(theta)
-        r, pred = self.joint_residuals(theta)
-        z = solve_triangular(self._errors_chol, r.T, lower=True, check_finite=False).T
-        k = z.shape[1]
+        pred, z_r = self._predict(theta)
+        r_g = (self.obs.acc[None] - pred.acc) * self.bins.q_ref[None] / self.stated_total_weight
+        z_g = solve_triangular(self._chol_gg, r_g.T, lower=True, check_finite=False).T
+        k = z_r.shape[1] + z_g.shape[1]
         noise = pred.noise_acc
-        return -0.5 * (z**2).sum(axis=1) / noise**2 - k * np.log(noise) - 0.5 * self._errors_log_det \
-            - 0.5 * k * _LOG_2PI
+        quad = (z_r**2).sum(axis=1) + (z_g**2).sum(axis=1)
+        return -0.5 * quad / noise**2 - k * np.log(noise) - 0.5 * self._errors_log_det - 0.5 * k * _LOG_2PI

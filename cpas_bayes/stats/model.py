@@ -277,6 +277,15 @@ class TestModel:
         out["cds_stage"] = out["eps"] * out["cds_o"][:, :, None]
         return out
 
+    def replicated_noise(self, rng, n):
+        """n draws of the observations' errors before the multipliers: accelerometer (n, N) and load cells
+        (n, L, N), independent parts plus one shared q̄ draw per bin (the likelihood's error structure)."""
+        obs = self.obs
+        shared = rng.standard_normal((n, obs.n_bins))
+        acc = obs.acc_sigma * rng.standard_normal((n, obs.n_bins)) + obs.acc_qbar * shared
+        lc = obs.lc_sigma * rng.standard_normal((n,) + obs.lc.shape) + obs.lc_qbar * shared[:, None, :]
+        return acc, lc
+
     def initial_values(self):
         """{parameter: value} the data fix before any fit (the MAP search's first guess uses them); none here."""
         return {}

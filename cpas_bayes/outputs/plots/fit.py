@@ -146,7 +146,8 @@ def plot_bands(fit, pred):
             _data_and_bands(ax, t, data, _DATA, f"load cell {p.id} (Eq. 11, × s̄ = {s_bar:.3f})", bands, "model",
                             starts, f"drag area C_D S [{area}]")
             if row == 0:
-                ax.set_title(f"{p.id} ({p.kind}, {p.inflation} mass): load cell against the model")
+                against = "load cell against the model" if data is not None else "the model (no load cell)"
+                ax.set_title(f"{p.id} ({p.kind}, {p.inflation} mass): {against}")
                 ax.legend(fontsize=7, loc="upper left")
             else:
                 before, after = ZOOM[p.inflation]
