@@ -101,3 +101,23 @@ def test_a_record_whose_receiver_starts_too_late_is_refused_clearly():
         d.loc[late, c] = np.nan
     with pytest.raises(Exception, match="receiver sample"):
         air.logger_channels(replace(test, data=d))
+
+
+def test_readings_before_a_release_are_not_read_as_drag():
+    """A record that starts 3 s before release, hanging under the carrier at 1 g and moving with it, is
+    reconstructed from the release on: the same air terms as the record cut at release."""
+    import pandas as pd
+
+    test, truth = synthesize_logger("logger-drop", 2)
+    d = test.data
+    dt = float(np.median(np.diff(air.channel_samples(d, "G")[0])))
+    hang_t = np.arange(-3.0, 0.0, dt)
+    rng = np.random.default_rng(0)
+    hanging = pd.DataFrame({"time": hang_t, "G": 1.0 + rng.normal(0.0, 0.01, hang_t.size),
+                            "G_sigma": np.full(hang_t.size, float(d["G_sigma"].dropna().iloc[0]))})
+    longer = replace(test, data=pd.concat([hanging, d], ignore_index=True))
+    ch = air.logger_channels(longer)
+    assert ch.accel_time[0] > -0.1          # starts at the release, not 3 s before it
+    cut = air.best_estimate_trajectory(test)
+    whole = air.best_estimate_trajectory(longer)
+    assert np.all(np.abs(whole.phi - cut.phi) < 2.0 * cut.sigma + 1e-9)

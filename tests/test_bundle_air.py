@@ -286,7 +286,7 @@ LOGGER_REFUSALS = [
     ("wind as a number", _logger(wind={"altitude": [0.0], "north": 3.0, "east": [0.0]}), "test.toml",
      "key 'wind.north'", "must be a non-empty array of numbers", "write north = [<number>, ...]"),
     ("qbar sigma in a logger bundle", _logger(sigma={"G": 0.03, "qbar": 1.0}), "test.toml", "key 'sigma.qbar'",
-     "unknown key 'qbar'", "use one of: G, v_north, v_east, v_up, altitude, F_D1"),
+     "unknown key 'qbar'", "use one of: G, accel_x, accel_y, accel_z, v_north, v_east, v_up, altitude, F_D1"),
     ("fewer than 10 G samples", _few_g, "data.csv", "column 'G'", "9 accelerometer sample(s), fewer than 10",
      "at least 10 non-empty 'G' cells"),
     ("a velocity column missing", _no_v_up, "data.csv", "column 'v_up'", "missing column(s) 'v_up'",
@@ -365,3 +365,37 @@ def test_velocity_columns_beside_qbar_are_ignored_as_before(example_dir, bundle_
     test = read_bundle(folder)
     assert test.measured_qbar and test.air_data is None
     pd.testing.assert_frame_equal(test.data, before.data)
+
+
+def test_three_accelerometer_axes_without_attitude_give_their_magnitude(tmp_path):
+    """accel_x, accel_y, accel_z (g) in place of G: G is their magnitude, its sigma propagated."""
+    from cpas_bayes.data.bundle import read_bundle
+    from cpas_bayes.data.bundle_write import write_bundle
+    from cpas_bayes.data.synth_logger import synthesize_logger
+
+    test, _ = synthesize_logger("logger-drop", 2)
+    folder = write_bundle(test, tmp_path / "g")
+    csv = (folder / "data.csv").read_text(encoding="utf-8").splitlines()
+    header = csv[0].split(",")
+    gi, si = header.index("G"), header.index("G_sigma")
+    rows = [["accel_x", "accel_y", "accel_z", "accel_x_sigma", "accel_y_sigma", "accel_z_sigma"]
+            + [h for k, h in enumerate(header) if k not in (gi, si)]]
+    for line in csv[1:]:
+        cells = line.split(",")
+        g, sg = cells[gi], cells[si]
+        if g:
+            # the same magnitude split over three axes: 0.6, 0.8 and 0 of it
+            axes = [f"{0.6 * float(g)!r}", f"{0.8 * float(g)!r}", "0.0", sg, sg, sg]
+        else:
+            axes = ["", "", "", "", "", ""]
+        rows.append(axes + [c for k, c in enumerate(cells) if k not in (gi, si)])
+    (folder / "data.csv").write_text("\n".join(",".join(r) for r in rows) + "\n", encoding="utf-8")
+    back = read_bundle(folder)
+    np.testing.assert_allclose(back.data["G"].to_numpy(), test.data["G"].to_numpy(), rtol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(back.data["G_sigma"].to_numpy(), test.data["G_sigma"].to_numpy(), rtol=1e-9,
+                               equal_nan=True)
+    # one axis missing in a reading is refused
+    rows[5][1] = ""
+    (folder / "data.csv").write_text("\n".join(",".join(r) for r in rows) + "\n", encoding="utf-8")
+    with pytest.raises(BundleError, match="an axis is empty"):
+        read_bundle(folder)

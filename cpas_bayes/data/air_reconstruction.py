@@ -3,8 +3,12 @@
 A logger bundle (docs/test-bundle.md, "Logger bundles") has no measured q̄:
 an accelerometer, a GNSS receiver's ground velocity, an altitude, perhaps a
 wind profile. The airspeed comes from flight-path reconstruction with the
-accelerometer as input (:mod:`cpas_bayes.physics.flight_path`), whose nine
-systematic unknowns are named here (:data:`AIR_PARAMETERS`):
+accelerometer as input (:mod:`cpas_bayes.physics.flight_path`), from the
+first reading after the release (before it the carrier's lift, not drag, is
+sensed): the one the accelerometer shows (hanging at ~1 g, then below 0.5 g),
+else time 0 when the record starts before it (the importer's convention); a
+record without either is used whole. Its nine systematic unknowns are named
+here (:data:`AIR_PARAMETERS`):
 
 ===================== ====== ==========================================================
 ``airspeed_0``        m/s    airspeed at the first accelerometer reading
@@ -53,6 +57,7 @@ import pandas as pd
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.data.air_data import VELOCITY_COLUMNS, channel_samples, sample_interval
 from cpas_bayes.data.bundle import FlightTest, with_data
+from cpas_bayes.data.logger_events import EventNotFound, detect_release
 from cpas_bayes.physics import flight_path as fp
 from cpas_bayes.physics.atmosphere import standard_density
 from cpas_bayes.core.units import STANDARD_GRAVITY
@@ -112,6 +117,16 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     spec = test.air_data
     t_a, g = channel_samples(d, "G")
     sigma_a = d["G_sigma"].to_numpy(float)[np.isfinite(d["G"].to_numpy(float))]
+    # A record that starts hanging under the carrier (G ≈ 1, lifted, not dragged) is reconstructed from its
+    # release on: before it the sensed force is not drag against the airspeed.
+    try:
+        release = detect_release(t_a, g).time
+    except EventNotFound:   # a fast drop's free fall may sense > 0.5 g of drag: time 0 is release (docs/import.md)
+        release = 0.0 if t_a[0] < 0.0 < t_a[-1] else -np.inf
+    after = t_a >= release
+    if after.sum() < 10:
+        after = np.ones(t_a.size, bool)
+    t_a, g, sigma_a = t_a[after], g[after], sigma_a[after]
     t_v, _ = channel_samples(d, "v_north")
     rows = np.isfinite(d["v_north"].to_numpy(float))
     vel = np.column_stack([d[c].to_numpy(float)[rows] for c in VELOCITY_COLUMNS])

@@ -34,7 +34,8 @@ from cpas_bayes.core.units import UNIT_SYSTEMS, UnitSystem, unit_system
 from cpas_bayes.data import limits
 from cpas_bayes.data.air_data import AirDataSpec
 from cpas_bayes.data.bundle_air import AIR_TABLES, LOGGER_QUANTITY, air_summary, check_measured_columns, \
-    logger_bundle, logger_columns, parse_air_tables, refuse_air_tables, sigma_channels
+    logger_bundle, logger_columns, parachute_channels, parse_air_tables, refuse_air_tables, \
+    sigma_channels
 from cpas_bayes.data.bundle_csv import csv_header, numeric_column, read_csv, sigma_column
 from cpas_bayes.data.limits import MAX_COLUMN_NAME, check_column, check_record, check_value
 
@@ -167,7 +168,8 @@ PARACHUTE_KEYS = ("id", "kind", "inflation", "diameter", "diameter_sigma", "weig
                   "flyout_angle", "stage")
 STAGE_KEYS = ("label", "start", "start_sigma")
 # data.csv columns with a fixed meaning: no parachute's load_cell or flyout_angle may name one of them.
-_RESERVED = ("time", "G", "qbar", "airspeed", "gamma", "density", "altitude", "v_north", "v_east", "v_up")
+_RESERVED = ("time", "G", "qbar", "airspeed", "gamma", "density", "altitude", "v_north", "v_east", "v_up",
+             "accel_x", "accel_y", "accel_z")
 
 
 def _is_number(value):
@@ -528,17 +530,9 @@ def read_bundle(folder) -> FlightTest:
     need_sigma("G", "G", limits.CHANNELS["G"])
     need_sigma("qbar", "qbar", limits.CHANNELS["qbar"])
 
-    for p in parachutes:
-        for column, canonical, kind, what in ((p.load_cell, p.load_column, "F", "load_cell"),
-                                              (p.flyout_angle, p.angle_column, "theta", "flyout_angle")):
-            if not column:
-                continue
-            if column not in raw.columns:
-                raise BundleError(csv_path, f"column '{column}'",
-                                  f"parachute {p.id!r} names {what} '{column}' but data.csv has no such column",
-                                  f"add the column or remove {what} from parachute {p.id!r} in test.toml")
-            columns[canonical] = need(column, f"{what} of {p.id}", limits.CHANNELS[kind])
-            need_sigma(column, canonical, limits.CHANNELS[kind], required=kind == "F")
+    for column, canonical, kind, what in parachute_channels(parachutes, raw.columns, csv_path):
+        columns[canonical] = need(column, f"{what} ({canonical})", limits.CHANNELS[kind])
+        need_sigma(column, canonical, limits.CHANNELS[kind], required=kind == "F")
     return _flight_test(meta, columns, folder)
 
 

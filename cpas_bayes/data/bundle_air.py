@@ -32,6 +32,7 @@ AIR_TABLES = ("wind", "atmosphere", "rate")
 WIND_KEYS = ("altitude", "north", "east", "sigma")
 ATMOSPHERE_KEYS = ("altitude", "density")
 LOGGER_COLUMNS = VELOCITY_COLUMNS + ("altitude",)   # required in a logger bundle, each with a 1-sigma
+ACCEL_AXES = ("accel_x", "accel_y", "accel_z")      # three body axes (g) in place of G: their magnitude is used
 MEASURED_COLUMNS = ("qbar", "airspeed")
 # Unit conversion of a logger bundle's own columns (bundle.COLUMN_QUANTITY holds these too).
 LOGGER_QUANTITY = {**{c: "speed" for c in VELOCITY_COLUMNS}, **{f"{c}_sigma": "speed" for c in VELOCITY_COLUMNS},
@@ -57,7 +58,7 @@ def logger_bundle(names):
 
 def sigma_channels(logger):
     """The vehicle channels [sigma] may name (parachute columns aside), by :func:`logger_bundle`'s answer."""
-    measured, gnss = ("G", "qbar"), ("G",) + LOGGER_COLUMNS
+    measured, gnss = ("G", "qbar"), ("G",) + ACCEL_AXES + LOGGER_COLUMNS
     return measured if logger is False else gnss if logger else measured + LOGGER_COLUMNS
 
 
@@ -193,6 +194,43 @@ def _enough(values, minimum, column, what, path):
                           f"a logger bundle needs at least {minimum} non-empty '{column}' cells; add the samples")
 
 
+def parachute_channels(parachutes, names, path):
+    """(column, canonical name, limits kind, test.toml key) of each parachute's load cell and fly-out angle;
+    refuses one that data.csv (``path``, column ``names``) lacks."""
+    for p in parachutes:
+        for column, canonical, kind, what in ((p.load_cell, p.load_column, "F", "load_cell"),
+                                              (p.flyout_angle, p.angle_column, "theta", "flyout_angle")):
+            if not column:
+                continue
+            if column not in names:
+                raise BundleError(path, f"column '{column}'",
+                                  f"parachute {p.id!r} names {what} '{column}' but data.csv has no such column",
+                                  f"add the column or remove {what} from parachute {p.id!r} in test.toml")
+            yield column, canonical, kind, what
+
+
+def accelerometer_magnitude(raw, sigma_table, units, path):
+    """G and G_sigma from three body axes ``accel_x, accel_y, accel_z`` (g) without attitude: the magnitude.
+
+    |a| = √(a_x² + a_y² + a_z²) is the sensed load factor whatever the attitude; its 1-sigma is
+    √Σ(a_i·σ_i)²/|a| (σ_i from ``accel_<i>_sigma`` or [sigma]). The magnitude of noisy axes reads high where
+    |a| is small (by about 3σ²/(2|a|)): the fit's accelerometer bias takes the constant part of it.
+    """
+    spec = limits.CHANNELS["G"]
+    parts = [_channel(raw, c, spec, units, path) for c in ACCEL_AXES]
+    present = np.all([np.isfinite(p) for p in parts], axis=0)
+    split = np.flatnonzero(np.any([np.isfinite(p) for p in parts], axis=0) & ~present)
+    if split.size:
+        raise BundleError(path, f"row {int(split[0]) + 2}, columns 'accel_x', 'accel_y', 'accel_z'",
+                          "an axis is empty where the others are given", "give all three axes of each reading")
+    sigmas = [_sigma(raw, c, p, sigma_table, spec, units, path) for c, p in zip(ACCEL_AXES, parts)]
+    magnitude = np.sqrt(sum(np.where(present, p, 0.0) ** 2 for p in parts))
+    sigma = np.sqrt(sum(np.where(present, p * s, 0.0) ** 2 for p, s in zip(parts, sigmas))) / np.maximum(magnitude, 1e-9)
+    # Near zero magnitude the linear rule fails: never below the axes' own mean sigma.
+    sigma = np.maximum(sigma, np.sqrt(sum(np.where(present, s, 0.0) ** 2 for s in sigmas) / 3.0))
+    return {"G": np.where(present, magnitude, np.nan), "G_sigma": np.where(present, sigma, np.nan)}
+
+
 def logger_columns(raw, meta, path):
     """A logger bundle's data columns in its own units (time aside), canonical names, NaN where blank.
 
@@ -201,15 +239,20 @@ def logger_columns(raw, meta, path):
     a velocity row with one or two blank components, too few samples, a sample
     without its 1-sigma and implausible values, naming ``path``, row and column.
     """
-    missing = [c for c in ("G",) + LOGGER_COLUMNS if c not in raw.columns]
+    axes = "G" not in raw.columns and all(c in raw.columns for c in ACCEL_AXES)
+    missing = [c for c in ("G",) + LOGGER_COLUMNS if c not in raw.columns and not (c == "G" and axes)]
     if missing:
         listed = ", ".join(f"'{c}'" for c in missing)
         raise BundleError(path, f"column '{missing[0]}'", f"missing column(s) {listed}: a bundle without qbar and "
-                          "airspeed is a logger bundle, which needs G, v_north, v_east, v_up and altitude", EITHER_FIX)
+                          "airspeed is a logger bundle, which needs G (or accel_x, accel_y, accel_z), v_north, "
+                          "v_east, v_up and altitude", EITHER_FIX)
     units, sigma_table, channels = meta.units, meta.sigma, limits.CHANNELS
-    out = {"G": _channel(raw, "G", channels["G"], units, path)}
+    if axes:
+        out = accelerometer_magnitude(raw, sigma_table, units, path)
+    else:
+        out = {"G": _channel(raw, "G", channels["G"], units, path)}
+        out["G_sigma"] = _sigma(raw, "G", out["G"], sigma_table, channels["G"], units, path)
     _enough(out["G"], MIN_G_SAMPLES, "G", "accelerometer", path)
-    out["G_sigma"] = _sigma(raw, "G", out["G"], sigma_table, channels["G"], units, path)
 
     v = {c: _channel(raw, c, channels[c], units, path) for c in VELOCITY_COLUMNS}
     given = np.column_stack([np.isfinite(v[c]) for c in VELOCITY_COLUMNS])
@@ -230,18 +273,10 @@ def logger_columns(raw, meta, path):
     if "density" in raw.columns:
         out["density"] = _channel(raw, "density", channels["density"], units, path)
 
-    for p in meta.parachutes:
-        for column, canonical, kind, what in ((p.load_cell, p.load_column, "F", "load_cell"),
-                                              (p.flyout_angle, p.angle_column, "theta", "flyout_angle")):
-            if not column:
-                continue
-            if column not in raw.columns:
-                raise BundleError(path, f"column '{column}'",
-                                  f"parachute {p.id!r} names {what} '{column}' but data.csv has no such column",
-                                  f"add the column or remove {what} from parachute {p.id!r} in test.toml")
-            out[canonical] = _channel(raw, column, channels[kind], units, path)
-            out[f"{canonical}_sigma"] = _sigma(raw, column, out[canonical], sigma_table, channels[kind], units,
-                                               path, required=kind == "F")
+    for column, canonical, kind, _ in parachute_channels(meta.parachutes, raw.columns, path):
+        out[canonical] = _channel(raw, column, channels[kind], units, path)
+        out[f"{canonical}_sigma"] = _sigma(raw, column, out[canonical], sigma_table, channels[kind], units,
+                                           path, required=kind == "F")
     return out
 
 

@@ -80,6 +80,7 @@ CHANNELS = {
     "theta": Plausible(None, -180.0, 180.0, "an angle beyond ±180° is not in degrees", "deg",
                        "fly-out angles are in degrees"),
 }
+CHANNELS.update({axis: CHANNELS["G"] for axis in ("accel_x", "accel_y", "accel_z")})   # body axes, in g
 # A logger bundle's GNSS ground velocity, one entry per component (north, east, up).
 _VELOCITY = Plausible("speed", -1000.0, 1000.0, "no parachute deploys faster than Mach 3, ~1000 m/s, in any "
                       "direction", hint=_UNITS_HINT)
