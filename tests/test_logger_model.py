@@ -113,3 +113,19 @@ def test_a_slow_logger_is_warned_about_in_words_that_fit_the_averaging_model():
     (w,) = fit_health.sample_rate_warnings(model, draws, sample_interval=0.05)     # 4 readings at 20 Hz
     assert w["code"] == "sample_rate" and "averages over each reading's interval" in w["message"]
     assert fit_health.sample_rate_warnings(model, draws, sample_interval=0.005) == []
+
+
+def test_diagnose_and_campaign_refuse_a_logger_bundle_before_any_work(tmp_path, capsys):
+    """Not yet built for logger bundles: said plainly, exit status 2, no traceback, nothing written."""
+    from cpas_bayes.app.cli import main
+    from cpas_bayes.data.synth_logger import write_logger_synthetic
+
+    folder = write_logger_synthetic("logger-drop", 2, tmp_path / "tests" / "drop")
+    for argv, needle, out in ((["diagnose", folder, "--out", tmp_path / "diag"], "diagnose does not yet take one",
+                               tmp_path / "diag"),
+                              (["campaign", tmp_path / "tests", "--out", tmp_path / "camp"],
+                               "a campaign does not yet take them", tmp_path / "camp")):
+        code = main([str(a) for a in argv])
+        captured = capsys.readouterr()
+        assert code == 2 and needle in captured.err and "Traceback" not in captured.err
+        assert not out.exists()

@@ -154,6 +154,12 @@ def validate_all(paths):
         raise InputError(Path(paths[0]).parent, f"{len(problems)} of {len(paths)} bundles",
                          "invalid:\n  " + "\n  ".join(problems),
                          "fix or remove them (cpas-bayes validate BUNDLE shows one at a time)")
+    loggers = [t.name for t in tests if not t.measured_qbar]
+    if loggers:
+        raise InputError(Path(paths[0]).parent, f"logger bundle(s) {', '.join(loggers)}",
+                         "have no measured q̄ (GNSS velocity and altitude instead): a campaign does not yet take "
+                         "them (their diagnosis is not built)",
+                         "fit each with cpas-bayes fit, or move them out of the campaign folder")
     # compared as a case-insensitive file system would: 'T1' and 't1' would share one folder there
     keys = [unicodedata.normalize("NFC", t.name).casefold() for t in tests]
     dupes = sorted({t.name for t, k in zip(tests, keys) if keys.count(k) > 1})

@@ -471,6 +471,11 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
         raise click.BadParameter(f"{sorted({n for n in names if names.count(n) > 1})[0]} is given twice",
                                  param_hint="--candidates")
     test = read_bundle(bundle)
+    if not test.measured_qbar:
+        raise InputError(bundle, "data.csv", "a logger bundle (GNSS velocity and altitude, no measured q̄): "
+                         "diagnose does not yet take one (its model terms are built on a measured q̄)",
+                         f"fit it with cpas-bayes fit {bundle} --out DIR; its fit-health warnings and figures say "
+                         "how well the baseline fits")
     _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
                               sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
