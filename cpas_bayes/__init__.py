@@ -35,6 +35,8 @@ _API = {
     "reduce_test": "cpas_bayes.data.reduction",
     "Reduction": "cpas_bayes.data.reduction",
     "synthesize": "cpas_bayes.data.synth",
+    "synthesize_logger": "cpas_bayes.data.synth_logger",
+    "best_estimate_trajectory": "cpas_bayes.data.air_reconstruction",
     "import_bundle": "cpas_bayes.data.importer",
     # inference
     "SamplerOptions": "cpas_bayes.inference.fit",
