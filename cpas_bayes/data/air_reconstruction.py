@@ -29,7 +29,7 @@ offset has the profile's stated sigma (10 m/s per component without a
 profile); scale 1 ± 0.03, bias 0 ± 0.05 g, latency 0.3 ± 0.5 s within −0.5 … 2 s
 (receivers stamp velocity late by their filter's delay, up to ~1.5 s).
 
-Likelihood of the receiver's samples (:func:`gnss_log_likelihood`): the
+Likelihood of the receiver's samples (:func:`whitened_misfit`): the
 velocity components and altitudes are jointly normal about the reconstruction
 at their time stamps minus the latency, with covariance λ²·Σ: the receiver's
 stated sigmas plus the random walk that the accelerometer's noise integrates
@@ -66,7 +66,6 @@ AIR_PARAMETERS = ("airspeed_0", "flight_path_angle_0", "heading_0", "altitude_0"
                   "accel_scale", "accel_bias", "gnss_latency")
 AIR_UNITS = ("m/s", "deg", "deg", "m", "m/s", "m/s", "", "g", "s")
 LATENCY_RANGE = (-0.5, 2.0)   # s: the latency prior's support
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -364,14 +363,6 @@ def whitened_misfit(ch: LoggerChannels, tr: AirTrack, errors: ReceiverErrors):
     dv, dh = gnss_misfit(ch, tr)
     stacked = np.concatenate([dv.reshape(dv.shape[0], -1), dh], axis=1)
     return solve_triangular(errors.chol, stacked.T, lower=True, check_finite=False).T
-
-
-def gnss_log_likelihood(ch: LoggerChannels, tr: AirTrack, errors: ReceiverErrors, noise=None):
-    """(B,) log-likelihood of the receiver's velocity and altitude samples, covariance noise²·Σ."""
-    z = whitened_misfit(ch, tr, errors)
-    k = z.shape[1]
-    noise = np.ones(z.shape[0]) if noise is None else np.asarray(noise, float)
-    return -0.5 * (z**2).sum(axis=1) / noise**2 - k * np.log(noise) - 0.5 * errors.log_det - 0.5 * k * _LOG_2PI
 
 
 @dataclass(frozen=True)

@@ -107,7 +107,6 @@ def logger_observations(test: FlightTest, estimate: air.AirDataEstimate, channel
     lo, hi = edges[:-1], edges[1:]
     count = hi - lo
     g_bin = np.add.reduceat(g, lo) / count
-    sigma = np.sqrt(np.add.reduceat(channels.accel_sigma**2, lo)) / count   # the model replaces it (joint_errors)
     span_start, span_end = t[lo] - interval, t[hi - 1]
     centre = 0.5 * (span_start + span_end)
     q_ref = np.interp(centre, t, f["qbar"].to_numpy())
@@ -124,7 +123,7 @@ def logger_observations(test: FlightTest, estimate: air.AirDataEstimate, channel
     w_stated = test.total_weight
     obs = Observations(
         time=centre, acc=w_stated * g_bin / q_ref - test.vehicle.cds,
-        acc_sigma=w_stated * sigma / q_ref, acc_qbar=np.zeros(n),
+        acc_sigma=np.full(n, np.nan), acc_qbar=np.zeros(n),   # LoggerModel sets it from joint_errors
         lc=empty, lc_sigma=empty, lc_qbar=empty, lc_weight_term=empty, lc_index=np.zeros(0, dtype=int),
         samples_per_bin=count, native_time=t,
         native_airspeed=f["airspeed"].to_numpy(), native_qbar=f["qbar"].to_numpy(), native_g=g,
@@ -203,20 +202,18 @@ class LoggerModel(TestModel):
         self.air_estimate = estimate if estimate is not None else air.best_estimate_trajectory(test)
         self._air_priors = self.air_estimate.priors
         obs, self.bins = logger_observations(test, self.air_estimate, self.channels)
-        super().__init__(test, obs, kind_priors, nuisance, decay=decay, extensions=(), cluster=cluster,
-                         below_previous=below_previous)
-        self._air_index = np.array([self.index[n] for n in air.AIR_PARAMETERS])
         chol, self._errors_log_det = joint_errors(self.channels, self.air_estimate, self.bins)
         # Receiver first, bins second: L = [[L_rr, 0], [L_gr, L_gg]]. Given the receiver's residuals r, the
         # bins' errors have mean L_gr·L_rr⁻¹·r (the walk the receiver saw) and covariance L_gg·L_ggᵀ.
         k = chol.shape[0] - self.bins.q_ref.size
         self._chol_rr, self._chol_gr, self._chol_gg = chol[:k, :k], chol[k:, :k], chol[k:, k:]
-        # Per-bin diagnostics (pointwise log-likelihood, residual checks) read the conditional marginal sigmas.
+        # Per-bin diagnostics (pointwise log-likelihood, residual checks) read the conditional marginal sigmas;
+        # set before the base class derives its per-bin constants from them.
         conditional = np.sqrt((self._chol_gg**2).sum(axis=1))
-        self.obs = replace(obs, acc_sigma=self.stated_total_weight * conditional / self.bins.q_ref)
-        self._w_acc = 1.0 / self.obs.acc_sigma**2
-        self._a_acc = self.obs.acc_qbar * self._w_acc
-        self._ll_const = -0.5 * (np.log(self.obs.acc_sigma**2) + np.log(self._denom) + _LOG_2PI)
+        obs = replace(obs, acc_sigma=test.total_weight * conditional / self.bins.q_ref)
+        super().__init__(test, obs, kind_priors, nuisance, decay=decay, extensions=(), cluster=cluster,
+                         below_previous=below_previous)
+        self._air_index = np.array([self.index[n] for n in air.AIR_PARAMETERS])
         # The averaging nodes are the same for every row: their interpolation weights on the reconstruction's
         # time base (the readings), once.
         t = self.channels.accel_time
