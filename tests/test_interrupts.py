@@ -10,6 +10,9 @@ import textwrap
 DROPPED = textwrap.dedent("""
     import os, signal, sys, time, weakref
 
+    # As an interactive shell starts it: a background job (nohup ... &) inherits SIGINT ignored.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
     class Thing:
         pass
 
@@ -97,3 +100,18 @@ def test_the_serial_executor_stops_before_the_next_task():
     out = _run(body)
     assert out.returncode == 0, out.stderr
     assert "ran [1]" in out.stdout
+
+
+def test_a_signal_the_process_was_started_ignoring_stays_ignored():
+    body = textwrap.dedent("""
+        from cpas_bayes.core import interrupts
+        signal.signal(signal.SIGINT, signal.SIG_IGN)   # a background job of a non-interactive shell
+        with interrupts.catching():
+            inside = signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGINT)
+            print('ignored inside', inside, 'requested', interrupts.requested())
+        print('after', signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+    """)
+    out = _run(body)
+    assert out.returncode == 0, out.stderr
+    assert "ignored inside True requested False" in out.stdout and "after True" in out.stdout

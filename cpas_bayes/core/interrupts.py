@@ -52,13 +52,15 @@ def catching(signals=(signal.SIGINT, signal.SIGTERM)):
     """Handle ``signals`` as recorded interrupts in this block; the previous handlers afterwards.
 
     Outside the main thread (where Python cannot set handlers) the block runs
-    with the handlers as they are.
+    with the handlers as they are. A signal the process was started ignoring
+    (a shell's background job ignores SIGINT) stays ignored, as Unix programs do.
     """
     _requested.clear()
     previous = {}
     if threading.current_thread() is threading.main_thread():
         for s in signals:
-            previous[s] = signal.signal(s, _on_signal)
+            if signal.getsignal(s) is not signal.SIG_IGN:
+                previous[s] = signal.signal(s, _on_signal)
     hook = sys.unraisablehook
     sys.unraisablehook = _quiet_for_interrupts(hook)
     try:
