@@ -139,13 +139,20 @@ class SamplingResult:
 # ensembles
 
 
-def _moves(proposal=None):
+def _exchanges(model):
+    """The model's label exchanges (like canopies no channel tells apart); none for a bare log density."""
+    exchanges = getattr(model, "exchanges", None)
+    return exchanges() if exchanges is not None else []
+
+
+def _moves(proposal=None, exchanges=()):
     """Differential evolution (:mod:`cpas_bayes.inference.moves`), mixed with the adaptive independence
-    move once a proposal is fitted. The snooker variant, meant for multimodal targets, gave no shorter τ on
-    these unimodal posteriors and costs a Python loop per walker."""
+    move once a proposal is fitted, and with label exchanges when the model has any. The snooker variant,
+    meant for multimodal targets, gave no shorter τ on these posteriors and costs a Python loop per walker:
+    their one multimodality, which canopy is which, has an exact move of its own."""
     from cpas_bayes.inference.moves import ensemble_moves
 
-    return ensemble_moves(proposal)
+    return ensemble_moves(proposal, exchanges)
 
 
 def _fingerprint(model, init, options):
@@ -155,6 +162,8 @@ def _fingerprint(model, init, options):
     key = [options.seed, options.store_every]
     if options.proposal != "de" and options.stop == "ess":  # the adaptive chain depends on its chunks too
         key += [options.proposal, options.check_every, "log θ for lognormal priors"]  # the proposal's coordinates
+    if _exchanges(model):   # the chain depends on the moves
+        key.append("label exchanges")
     h.update(json.dumps(key).encode())
     return h.hexdigest()[:16]
 
@@ -402,7 +411,7 @@ def _chunk_task(job):
     proposal, if any, is fixed for the chunk).
     """
     model, (coords, log_prob, random_state), n_stored, store_every, proposal = job
-    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves(proposal))
+    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves(proposal, _exchanges(model)))
     sampler.run_mcmc(emcee.State(coords, log_prob=log_prob, random_state=random_state), n_stored,
                      thin_by=store_every, progress=False)
     b = sampler.backend

@@ -25,6 +25,7 @@ individual one under other names.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -54,3 +55,88 @@ def start_prior(stages):
     starts = np.array([s.start for s in stages])
     sd = math.sqrt(np.mean([s.start_sigma ** 2 for s in stages]) + starts.var())
     return Normal(float(starts.mean()), max(sd, 1e-3))
+
+
+# ---------------------------------------------------------------------------
+# label exchanges of like canopies that no channel tells apart
+
+
+@dataclass(frozen=True)
+class Exchange:
+    """One label exchange between two like parachutes at one stage: an involution of θ with unit Jacobian.
+
+    θ'[swap_a] = θ[swap_b] and θ'[swap_b] = θ[swap_a] (the stage's start, expopen, ck, tk, and at a
+    stage whose drag area is CDS_o itself the CDS_o and n_p); then θ'[dst] = θ[src]·(θ[num]/θ[den])^power
+    for the rest: at a reefed stage eps_i' = eps_j·CDS_o,j/CDS_o,i, so that the stage's drag area eps·CDS_o
+    changes hands, and n_p,i' = n_p,j·(CDS_o,i/CDS_o,j)^½, so that its fill time
+    t_f = n·D_o·sqrt(eps·CDS_o/CDS_o)/V does too (exact at a first stage: the cluster's drag area is the
+    same until a canopy leaves it); at the last stage the other stages' eps·CDS_o stay where they were.
+    Each rescaled pair multiplies to what it was, so |∂θ'/∂θ| = 1 and the Metropolis ratio of the exchange
+    is the posterior ratio alone.
+    """
+
+    pair: tuple
+    stage: int
+    swap_a: np.ndarray
+    swap_b: np.ndarray
+    dst: np.ndarray
+    src: np.ndarray
+    num: np.ndarray
+    den: np.ndarray
+    power: np.ndarray
+
+    def apply(self, theta):
+        """θ' of each row of ``theta`` (B, D); applying it twice gives θ back."""
+        theta = np.asarray(theta, float)
+        out = theta.copy()
+        out[:, self.swap_a], out[:, self.swap_b] = theta[:, self.swap_b], theta[:, self.swap_a]
+        if self.dst.size:
+            out[:, self.dst] = theta[:, self.src] * (theta[:, self.num] / theta[:, self.den]) ** self.power
+        return out
+
+
+def stage_exchanges(parachutes, column):
+    """The :class:`Exchange` of every stage of every pair of like parachutes without a load cell.
+
+    ``column(i, field)`` is the θ column of parachute i's ``field`` (``cds_o``, ``s<k>.<name>``) or None.
+    Like: same kind, inflation, diameter and stage count. Without a channel of their own (a logger bundle,
+    a cluster without load cells) the data see only their sum, so which canopy opened first at a stage is
+    not known: the posterior holds both pairings, and an exchange is the move that crosses between them.
+    """
+    out = []
+    for i, p in enumerate(parachutes):
+        for j in range(i + 1, len(parachutes)):
+            o = parachutes[j]
+            if p.load_cell or o.load_cell or \
+                    (p.kind, p.inflation, p.diameter, len(p.stages)) != (o.kind, o.inflation, o.diameter,
+                                                                          len(o.stages)):
+                continue
+            ci, cj = column(i, "cds_o"), column(j, "cds_o")
+            eps = [(column(i, f"s{m + 1}.eps"), column(j, f"s{m + 1}.eps")) for m in range(len(p.stages))]
+            for k in range(len(p.stages)):
+                swaps = [(column(i, f"s{k + 1}.{f}"), column(j, f"s{k + 1}.{f}"))
+                         for f in ("start", "expopen", "ck", "tk")]
+                swaps = [s for s in swaps if None not in s]
+                rescale = []                       # (dst, src, num, den, power)
+                ei, ej = eps[k]
+                fill = [(column(i, f"s{k + 1}.{f}"), column(j, f"s{k + 1}.{f}")) for f in ("n_p", "n")]
+                fill = next((c for c in fill if None not in c), None)
+                has_cds_o = None not in (ci, cj)
+                if has_cds_o and None not in (ei, ej):     # reefed: eps·CDS_o and the fill time change hands
+                    rescale += [(ei, ej, cj, ci, 1.0), (ej, ei, ci, cj, 1.0)]
+                    if fill is not None:
+                        rescale += [(fill[0], fill[1], ci, cj, 0.5), (fill[1], fill[0], cj, ci, 0.5)]
+                elif has_cds_o and (ei, ej) == (None, None):   # the drag area is CDS_o: it changes hands,
+                    swaps += [(ci, cj)] + ([fill] if fill is not None else [])   # the other stages' stay
+                    for m, (em_i, em_j) in enumerate(eps):
+                        if m != k and None not in (em_i, em_j):
+                            rescale += [(em_i, em_i, ci, cj, 1.0), (em_j, em_j, cj, ci, 1.0)]
+                else:
+                    swaps += [c for c in ((ei, ej), fill) if c is not None and None not in c]
+                if not swaps and not rescale:
+                    continue
+                a, b = (np.array(c, int) for c in zip(*swaps)) if swaps else (np.empty(0, int),) * 2
+                cols = list(zip(*rescale)) if rescale else [()] * 5
+                r = [np.array(c, int) for c in cols[:4]]
+                out.append(Exchange((p.id, o.id), k, a, b, *r, np.array(cols[4], float)))
+    return out

@@ -67,7 +67,7 @@ import numpy as np
 
 from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.physics.inflation import below_previous_code, cluster_drag_area, decay_code, stage_role, stage_tag
-from cpas_bayes.stats.cluster_form import chute_prefixes, start_prior
+from cpas_bayes.stats.cluster_form import chute_prefixes, stage_exchanges, start_prior
 from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
 from cpas_bayes.stats.observations import Observations
 from cpas_bayes.stats.distributions import TruncNormal
@@ -151,6 +151,13 @@ class TestModel:
         """The parameter holding parachute ``chute``'s (index) ``field`` (``cds_o``, ``s<k>.<name>``), or None."""
         name = f"{self.chute_prefix[chute]}.{field}"
         return name if name in self.index else None
+
+    def exchanges(self):
+        """Label exchanges of like parachutes that no channel tells apart (the sampler's
+        :class:`~cpas_bayes.inference.moves.ExchangeMove`); none in the composite form."""
+        if self.cluster != "individual":
+            return []
+        return stage_exchanges(self.parachutes, lambda i, field: self.index.get(self.parameter_name(i, field)))
 
     def _build_parameters(self):
         params = []

@@ -1,0 +1,113 @@
+"""Label exchanges of like canopies that no channel tells apart (``cluster_form.stage_exchanges``,
+``moves.ExchangeMove``).
+
+Without a load cell per canopy the data see only the cluster's sum, so which canopy opened first at a stage
+is not known. The posterior then has one mode per pairing; differential evolution stays in the one it
+starts in. The exchange is an involution of θ with unit Jacobian, so Metropolis with the posterior ratio is
+exact. Checked here: the algebra on a real logger model, and the law of the move on a two-mode target whose
+mode weights are known.
+"""
+
+import emcee
+import numpy as np
+import pytest
+
+from cpas_bayes.data.reduction import reduce_test
+from cpas_bayes.data.synth_logger import synthesize_logger
+from cpas_bayes.inference.fit import prepare_model
+from cpas_bayes.inference.moves import ensemble_moves
+from cpas_bayes.stats.cluster_form import Exchange
+
+
+@pytest.fixture(scope="module")
+def drogue_pair():
+    test, truth = synthesize_logger("logger-drogue", 1)
+    return prepare_model(test, reduce_test(test))
+
+
+def _theta(model, rng):
+    lo = np.array([p.prior.ppf(0.2) for p in model.parameters])
+    hi = np.array([p.prior.ppf(0.8) for p in model.parameters])
+    return lo + (hi - lo) * rng.uniform(size=(3, lo.size))
+
+
+def test_a_logger_pair_has_one_exchange_per_stage_and_each_is_an_involution_with_unit_jacobian(drogue_pair):
+    m = drogue_pair
+    exchanges = m.exchanges()
+    assert [(e.pair, e.stage) for e in exchanges] == [(("D1", "D2"), 0), (("D1", "D2"), 1)]
+    theta = _theta(m, np.random.default_rng(0))
+    for e in exchanges:
+        swapped = e.apply(theta)
+        np.testing.assert_allclose(e.apply(swapped), theta, rtol=1e-12)
+        # the Jacobian by central differences, at each row
+        for row in theta:
+            h = 1e-6 * np.maximum(np.abs(row), 1e-3)
+            jac = np.stack([(e.apply((row + h * u)[None]) - e.apply((row - h * u)[None]))[0] / (2 * h[k])
+                            for k, u in enumerate(np.eye(row.size))], axis=1)
+            assert abs(abs(np.linalg.det(jac)) - 1.0) < 1e-5
+    # the exchanged stage's drag area eps·CDS_o and its timing change hands; the other stage's stay
+    col = m.index
+    reefed, full = exchanges
+    t = reefed.apply(theta)
+    for a, b in (("D1", "D2"), ("D2", "D1")):
+        np.testing.assert_allclose(t[:, col[f"{a}.s1.eps"]] * t[:, col[f"{a}.cds_o"]],
+                                   theta[:, col[f"{b}.s1.eps"]] * theta[:, col[f"{b}.cds_o"]])
+        np.testing.assert_array_equal(t[:, col[f"{a}.s1.start"]], theta[:, col[f"{b}.s1.start"]])
+        np.testing.assert_array_equal(t[:, col[f"{a}.cds_o"]], theta[:, col[f"{a}.cds_o"]])
+        np.testing.assert_array_equal(t[:, col[f"{a}.s2.n_p"]], theta[:, col[f"{a}.s2.n_p"]])
+    t = full.apply(theta)
+    for a, b in (("D1", "D2"), ("D2", "D1")):
+        np.testing.assert_array_equal(t[:, col[f"{a}.cds_o"]], theta[:, col[f"{b}.cds_o"]])
+        np.testing.assert_allclose(t[:, col[f"{a}.s1.eps"]] * t[:, col[f"{a}.cds_o"]],
+                                   theta[:, col[f"{a}.s1.eps"]] * theta[:, col[f"{a}.cds_o"]])
+
+
+def test_the_exchanged_pairing_predicts_the_same_total_before_either_disreef(drogue_pair):
+    """What makes the move worth having: swapping the reefed stage leaves the cluster's drag area unchanged
+    while both canopies are in it, so both pairings fit the accelerometer."""
+    m = drogue_pair
+    theta = _theta(m, np.random.default_rng(1))
+    reefed = m.exchanges()[0]
+    stage = m.gather_stages(theta)
+    disreef = stage["start"][:, :, 1].min()
+    t = np.linspace(0.0, disreef - 0.05, 400)
+    before = m.drag_areas(m.gather_stages(theta), t)[0].sum(axis=1)
+    after = m.drag_areas(m.gather_stages(reefed.apply(theta)), t)[0].sum(axis=1)
+    np.testing.assert_allclose(after, before, rtol=1e-9, atol=1e-9)
+
+
+def test_no_exchange_where_a_load_cell_or_the_composite_form_tells_the_canopies_apart():
+    from cpas_bayes.data.synth import synthesize
+
+    test, _ = synthesize("drogue", "none", 3)
+    assert prepare_model(test, reduce_test(test)).exchanges() == []
+    logger, _ = synthesize_logger("logger-drogue", 1)
+    assert prepare_model(logger, reduce_test(logger), cluster="composite").exchanges() == []
+
+
+def test_the_move_weighs_two_modes_as_the_target_does():
+    """Two narrow modes at (1, 3) and (3, 1) with weights 0.7 and 0.3, 10 sd apart: differential evolution
+    alone keeps every walker in the mode it started in; with the exchange the share of draws in the first
+    mode is 0.7. 32 walkers × 3,000 steps; an exchange is accepted at rate ~0.3–1, so the share's standard
+    error is below 0.01 and the band ±0.04 is four of them. A move that skipped the Metropolis test would
+    give 0.5, one that never crossed 1.0."""
+    sd, w = 0.2, 0.7
+
+    def log_prob(x):
+        x = np.atleast_2d(x)
+        a = -0.5 * ((x[:, 0] - 1) ** 2 + (x[:, 1] - 3) ** 2) / sd**2 + np.log(w)
+        b = -0.5 * ((x[:, 0] - 3) ** 2 + (x[:, 1] - 1) ** 2) / sd**2 + np.log(1 - w)
+        return np.logaddexp(a, b)
+
+    swap = Exchange(("a", "b"), 0, np.array([0]), np.array([1]), *[np.empty(0, int)] * 4, np.empty(0))
+    rng = np.random.default_rng(5)
+    start = np.array([3.0, 1.0]) + 0.05 * rng.normal(size=(32, 2))     # all in the lighter mode
+    shares = {}
+    for name, exchanges in (("de", ()), ("exchange", (swap,))):
+        sampler = emcee.EnsembleSampler(32, 2, log_prob, vectorize=True, moves=ensemble_moves(None, exchanges))
+        sampler.random_state = np.random.RandomState(11).get_state()
+        sampler.run_mcmc(start, 3500, progress=False)
+        draws = sampler.get_chain(discard=500, flat=True)
+        shares[name] = float(np.mean(draws[:, 0] < draws[:, 1]))
+    assert shares["de"] < 0.01
+    assert abs(shares["exchange"] - w) < 0.04, shares
