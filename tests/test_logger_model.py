@@ -115,17 +115,41 @@ def test_a_slow_logger_is_warned_about_in_words_that_fit_the_averaging_model():
     assert fit_health.sample_rate_warnings(model, draws, sample_interval=0.005) == []
 
 
-def test_diagnose_and_campaign_refuse_a_logger_bundle_before_any_work(tmp_path, capsys):
+def test_diagnose_refuses_a_logger_bundle_before_any_work(tmp_path, capsys):
     """Not yet built for logger bundles: said plainly, exit status 2, no traceback, nothing written."""
     from cpas_bayes.app.cli import main
     from cpas_bayes.data.synth_logger import write_logger_synthetic
 
     folder = write_logger_synthetic("logger-drop", 2, tmp_path / "tests" / "drop")
-    for argv, needle, out in ((["diagnose", folder, "--out", tmp_path / "diag"], "diagnose does not yet take one",
-                               tmp_path / "diag"),
-                              (["campaign", tmp_path / "tests", "--out", tmp_path / "camp"],
-                               "a campaign does not yet take them", tmp_path / "camp")):
-        code = main([str(a) for a in argv])
-        captured = capsys.readouterr()
-        assert code == 2 and needle in captured.err and "Traceback" not in captured.err
-        assert not out.exists()
+    code = main(["diagnose", str(folder), "--out", str(tmp_path / "diag")])
+    captured = capsys.readouterr()
+    assert code == 2 and "diagnose does not yet take one" in captured.err and "Traceback" not in captured.err
+    assert not (tmp_path / "diag").exists()
+
+
+@pytest.mark.slow
+def test_a_campaign_of_logger_drops_fits_pools_and_runs_the_monte_carlo_without_a_diagnosis(tmp_path):
+    """Two seeded drops in one campaign: each is reduced and fitted, marked not diagnosed (the diagnosis is
+    not built for logger bundles), and both enter the memo and the Monte Carlo of their configuration."""
+    import json
+
+    from cpas_bayes.app.cli import main
+    from cpas_bayes.data.synth_logger import write_logger_synthetic
+
+    folder = tmp_path / "tests"
+    for seed in (3, 4):
+        write_logger_synthetic("logger-drop", seed, folder / f"drop{seed}")
+    config = tmp_path / "campaign.toml"
+    config.write_text('workers = 1\n[fit]\nensembles = 1\nmax_steps = 1000\nstop = "tau"\ntau_factor = 10\n'
+                      "[montecarlo]\nruns = 400\n[compare]\nruns = 200\n[pool]\ndraws = 1000\n")
+    out = tmp_path / "out"
+    assert main(["campaign", str(folder), "--out", str(out), "--config", str(config)]) == 0
+    manifest = json.loads((out / "campaign.json").read_text())
+    assert len(manifest["tests"]) == 2 and all(c is None for c in manifest["causes"].values())
+    steps = {s["name"]: s["status"] for s in manifest["steps"]}
+    assert not any(name.endswith("diagnosis") for name in steps)
+    for name in manifest["tests"]:
+        assert steps[f"{name} fit"] == "ran"
+        assert (out / "tests" / name / "fit" / "posterior.nc").stat().st_size > 0
+    assert (out / "memo" / "memo.toml").is_file()
+    assert "not diagnosed" in (out / "index.html").read_text()

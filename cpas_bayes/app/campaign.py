@@ -3,7 +3,8 @@
 ``run_campaign(DIR, OUT, config)`` (``cpas-bayes campaign DIR --out OUT``):
 
 1. validate every bundle in DIR (all problems reported together, nothing run);
-2. per test: reduce, fit (posterior + figures + checks), diagnose;
+2. per test: reduce, fit (posterior + figures + checks), diagnose (not a logger
+   bundle's: its diagnosis is not built; the report marks it not diagnosed);
 3. pool the fits by parachute kind and stage into the memo (the fit of a test
    whose diagnosis names a *measurement* cause — friction drift, sensor lag —
    is replaced by its extended fit, whose inflation parameters are free of it;
@@ -154,12 +155,6 @@ def validate_all(paths):
         raise InputError(Path(paths[0]).parent, f"{len(problems)} of {len(paths)} bundles",
                          "invalid:\n  " + "\n  ".join(problems),
                          "fix or remove them (cpas-bayes validate BUNDLE shows one at a time)")
-    loggers = [t.name for t in tests if not t.measured_qbar]
-    if loggers:
-        raise InputError(Path(paths[0]).parent, f"logger bundle(s) {', '.join(loggers)}",
-                         "have no measured q̄ (GNSS velocity and altitude instead): a campaign does not yet take "
-                         "them (their diagnosis is not built)",
-                         "fit each with cpas-bayes fit, or move them out of the campaign folder")
     # compared as a case-insensitive file system would: 'T1' and 't1' would share one folder there
     keys = [unicodedata.normalize("NFC", t.name).casefold() for t in tests]
     dupes = sorted({t.name for t, k in zip(tests, keys) if keys.count(k) > 1})
@@ -499,7 +494,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
             if config.fit_proposal != "de":  # fits of DE alone, the only proposal before, keep their keys
                 fit_opts["fit_proposal"] = config.fit_proposal
         fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
-        if config.diagnose != "off":
+        if config.diagnose != "off" and test.measured_qbar:   # a logger bundle's diagnosis is not built yet
             diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))
         jobs.append((test, config, out, bundle_key, fit_keys[test.name], diag_keys.get(test.name)))
     if executor.workers > 1 and len(jobs) >= executor.workers:

@@ -141,7 +141,16 @@ class ClusterLayout:
             raise InputError(where, "column 'altitude'", "missing; a Monte Carlo run starts from the first "
                              "sample's altitude (it sets the air density)",
                              "add an altitude column to data.csv, or use another test as --like")
-        first = data.iloc[0]
+        if not test.measured_qbar:   # a logger bundle: the receiver's state carried back to the first reading
+            from cpas_bayes.data.air_reconstruction import air_priors, logger_channels
+
+            channels = logger_channels(test)
+            state = {k: v.mu for k, v in air_priors(channels).items()}
+            t0 = float(channels.accel_time[0])
+            first = {"airspeed": state["airspeed_0"], "gamma": state["flight_path_angle_0"],
+                     "altitude": state["altitude_0"]}
+        else:
+            first, t0 = data.iloc[0], float(data["time"].iloc[0])
         if not float(first["airspeed"]) > 0:
             raise InputError(where, "row 2, column 'airspeed'", f"initial airspeed {first['airspeed']} is not "
                              "positive", "trim the rows before the vehicle has airspeed")
@@ -165,7 +174,7 @@ class ClusterLayout:
             stages_per_chute=np.array([len(p.stages) for p in test.parachutes], dtype=np.int64),
             stage_labels=tuple(tuple(s.label for s in p.stages) for p in test.parachutes),
             nominal_start=start, start_sigma=sigma, cluster_stage_labels=tuple(labels),
-            t0=float(data["time"].iloc[0]), duration=test.duration,
+            t0=t0, duration=test.duration,
             airspeed0=float(first["airspeed"]), gamma0=math.radians(float(first["gamma"])),
             altitude0=float(first["altitude"]), vehicle_weight=test.vehicle.weight,
             vehicle_cds=test.vehicle.cds)
