@@ -85,23 +85,26 @@ def test_no_exchange_where_a_load_cell_or_the_composite_form_tells_the_canopies_
     assert prepare_model(logger, reduce_test(logger), cluster="composite").exchanges() == []
 
 
-def test_the_move_weighs_two_modes_as_the_target_does():
-    """Two narrow modes at (1, 3) and (3, 1) with weights 0.7 and 0.3, 10 sd apart: differential evolution
-    alone keeps every walker in the mode it started in; with the exchange the share of draws in the first
-    mode is 0.7. 32 walkers × 3,000 steps; an exchange is accepted at rate ~0.3–1, so the share's standard
-    error is below 0.01 and the band ±0.04 is four of them. A move that skipped the Metropolis test would
-    give 0.5, one that never crossed 1.0."""
-    sd, w = 0.2, 0.7
+def test_the_moves_weigh_two_modes_of_unequal_widths_as_the_target_does():
+    """Two narrow modes at (1, 6) and (6, 1), sd 0.2 and 0.35, weights 0.7 and 0.3, 7 units apart:
+    differential evolution alone keeps every walker in the mode it started in; with the exchange and the
+    aligned differential evolution the share of draws in the first mode is 0.7 and each mode keeps its own
+    width. 32 walkers × 3,000 steps; an exchange is accepted at rate ~0.3–1, so the share's standard error
+    is below 0.01 and the band ±0.04 is four of them. A move that skipped the Metropolis test would give
+    0.5, one that never crossed 1.0; an alignment that broke the proposal's symmetry would bend the widths
+    (band ±12 %, the sd of an sd estimate at this length being ~3 %)."""
+    sd_a, sd_b, w = 0.2, 0.35, 0.7
 
     def log_prob(x):
         x = np.atleast_2d(x)
-        a = -0.5 * ((x[:, 0] - 1) ** 2 + (x[:, 1] - 3) ** 2) / sd**2 + np.log(w)
-        b = -0.5 * ((x[:, 0] - 3) ** 2 + (x[:, 1] - 1) ** 2) / sd**2 + np.log(1 - w)
+        a = -0.5 * ((x[:, 0] - 1) ** 2 + (x[:, 1] - 6) ** 2) / sd_a**2 + np.log(w) - 2 * np.log(sd_a)
+        b = -0.5 * ((x[:, 0] - 6) ** 2 + (x[:, 1] - 1) ** 2) / sd_b**2 + np.log(1 - w) - 2 * np.log(sd_b)
         return np.logaddexp(a, b)
 
-    swap = Exchange(("a", "b"), 0, np.array([0]), np.array([1]), *[np.empty(0, int)] * 4, np.empty(0))
+    swap = Exchange(("a", "b"), 0, np.array([0]), np.array([1]), *[np.empty(0, int)] * 4, np.empty(0),
+                    order=(0, 1))
     rng = np.random.default_rng(5)
-    start = np.array([3.0, 1.0]) + 0.05 * rng.normal(size=(32, 2))     # all in the lighter mode
+    start = np.array([6.0, 1.0]) + 0.05 * rng.normal(size=(32, 2))     # all in the lighter mode
     shares = {}
     for name, exchanges in (("de", ()), ("exchange", (swap,))):
         sampler = emcee.EnsembleSampler(32, 2, log_prob, vectorize=True, moves=ensemble_moves(None, exchanges))
@@ -109,5 +112,31 @@ def test_the_move_weighs_two_modes_as_the_target_does():
         sampler.run_mcmc(start, 3500, progress=False)
         draws = sampler.get_chain(discard=500, flat=True)
         shares[name] = float(np.mean(draws[:, 0] < draws[:, 1]))
+        if name == "exchange":
+            first = draws[:, 0] < draws[:, 1]
+            widths = (draws[first, 0].std(), draws[~first, 0].std())
     assert shares["de"] < 0.01
     assert abs(shares["exchange"] - w) < 0.04, shares
+    assert abs(widths[0] / sd_a - 1) < 0.12 and abs(widths[1] / sd_b - 1) < 0.12, widths
+
+
+def test_aligned_differential_evolution_is_exact_where_the_pairings_meet():
+    """A single Gaussian across the boundary x0 = x1 between two pairings, not symmetric about it
+    (means 0 and 0.6, sds 1 and 0.5): half the walkers' pairs are aligned by an exchange, and a proposal
+    that lands in the other pairing must be refused for the proposal to stay symmetric. Means within 0.05
+    and sds within 6 % (32 walkers × 6,000 steps, τ ≈ 10: standard errors ≈ 0.01 and 1 %); dropping the
+    refusal moves them by more."""
+    mean, sd = np.array([0.0, 0.6]), np.array([1.0, 0.5])
+
+    def log_prob(x):
+        return -0.5 * np.sum(((np.atleast_2d(x) - mean) / sd) ** 2, axis=1)
+
+    swap = Exchange(("a", "b"), 0, np.array([0]), np.array([1]), *[np.empty(0, int)] * 4, np.empty(0),
+                    order=(0, 1))
+    rng = np.random.default_rng(8)
+    sampler = emcee.EnsembleSampler(32, 2, log_prob, vectorize=True, moves=ensemble_moves(None, (swap,)))
+    sampler.random_state = np.random.RandomState(3).get_state()
+    sampler.run_mcmc(mean + sd * rng.normal(size=(32, 2)), 6500, progress=False)
+    draws = sampler.get_chain(discard=500, flat=True)
+    np.testing.assert_allclose(draws.mean(axis=0), mean, atol=0.05)
+    np.testing.assert_allclose(draws.std(axis=0), sd, rtol=0.06)

@@ -52,7 +52,7 @@ import hashlib
 import json
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import emcee
@@ -463,6 +463,8 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
 
     from cpas_bayes.core.files import exclusive_writer
 
+    if _exchanges(model):   # DE and exchanges only (ensemble_moves): no proposal to adapt, no warm-up to drop
+        options = replace(options, proposal="de")
     ends, warm, windows = _schedule(options)
     with ExitStack() as held:
         for ckpt in ckpts:

@@ -404,6 +404,9 @@ def build_summary(model, tree, diagnostics, options, ppc_table=None):
         "priors": {prm.name: prm.prior.describe() for prm in model.parameters},
         "sampler": {"seed": options.seed, "ensembles": options.n_ensembles, "walkers": options.walkers,
                     "check_every": options.check_every, "max_steps": options.max_steps, "stop": options.stop,
-                    "ess_target": options.ess_target, "rhat_target": options.rhat_target},
+                    "ess_target": options.ess_target, "rhat_target": options.rhat_target,
+                    # like canopies no channel tells apart: the stage pairings the sampler exchanges
+                    "label_exchanges": [f"{a}<->{b} s{k + 1}" for (a, b), k in
+                                        ((e.pair, e.stage) for e in model.exchanges())]},
         "version": __version__,
     }

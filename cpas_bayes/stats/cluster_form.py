@@ -84,6 +84,7 @@ class Exchange:
     num: np.ndarray
     den: np.ndarray
     power: np.ndarray
+    order: tuple | None = None   # the θ columns of the two stage starts: which pairing a walker is in
 
     def apply(self, theta):
         """θ' of each row of ``theta`` (B, D); applying it twice gives θ back."""
@@ -138,5 +139,7 @@ def stage_exchanges(parachutes, column):
                 a, b = (np.array(c, int) for c in zip(*swaps)) if swaps else (np.empty(0, int),) * 2
                 cols = list(zip(*rescale)) if rescale else [()] * 5
                 r = [np.array(c, int) for c in cols[:4]]
-                out.append(Exchange((p.id, o.id), k, a, b, *r, np.array(cols[4], float)))
+                starts = (column(i, f"s{k + 1}.start"), column(j, f"s{k + 1}.start"))
+                out.append(Exchange((p.id, o.id), k, a, b, *r, np.array(cols[4], float),
+                                    starts if None not in starts else None))
     return out
