@@ -39,14 +39,17 @@ class VectorisedDEMove(emcee.moves.DEMove):
     def __init__(self, sigma=1.0e-5, gamma0=None):
         super().__init__(sigma=sigma, gamma0=gamma0, nsplits=2, randomize_split=True)
 
-    def get_proposal(self, s, c, random):
-        c = np.concatenate(c, axis=0)
-        ns, nc = s.shape[0], c.shape[0]
+    def draw_pairs(self, ns, nc, random):
+        """For each of ``ns`` walkers, the pair (a, b) of the ``nc`` others and its γ (ns, 1)."""
         a = random.randint(nc, size=ns)
         b = random.randint(nc - 1, size=ns)
         b += b >= a                                   # b ≠ a, uniform over the others
-        gamma = self.g0 * (1.0 + self.sigma * random.randn(ns, 1))
-        return s + gamma * (c[b] - c[a]), np.zeros(ns)
+        return a, b, self.g0 * (1.0 + self.sigma * random.randn(ns, 1))
+
+    def get_proposal(self, s, c, random):
+        c = np.concatenate(c, axis=0)
+        a, b, gamma = self.draw_pairs(s.shape[0], c.shape[0], random)
+        return s + gamma * (c[b] - c[a]), np.zeros(s.shape[0])
 
     def propose(self, model, state):
         nwalkers, ndim = state.coords.shape
@@ -105,11 +108,7 @@ class AlignedDEMove(VectorisedDEMove):
 
     def get_proposal(self, s, c, random):
         c = np.concatenate(c, axis=0)
-        ns, nc = s.shape[0], c.shape[0]
-        a = random.randint(nc, size=ns)
-        b = random.randint(nc - 1, size=ns)
-        b += b >= a
-        gamma = self.g0 * (1.0 + self.sigma * random.randn(ns, 1))
+        a, b, gamma = self.draw_pairs(s.shape[0], c.shape[0], random)
         pairing = self.pairing(s)
         q = s + gamma * (self.align(c[b], pairing) - self.align(c[a], pairing))
         return q, np.where((self.pairing(q) == pairing).all(axis=1), 0.0, -np.inf)

@@ -34,13 +34,18 @@ from cpas_bayes.stats.distributions import Normal
 CLUSTER_FORMS = ("individual", "composite")
 
 
+def like_key(parachute):
+    """What makes parachutes alike (one composite group, or exchangeable): kind, inflation, diameter, stages."""
+    return parachute.kind, parachute.inflation, parachute.diameter, len(parachute.stages)
+
+
 def chute_prefixes(parachutes, cluster):
     """The parameter prefix of each parachute: its id, or in the composite form its group's name."""
     if cluster not in CLUSTER_FORMS:
         raise ValueError(f"cluster must be one of {CLUSTER_FORMS}, got {cluster!r}")
     if cluster == "individual":
         return [p.id for p in parachutes]
-    keys = [(p.kind, p.inflation, p.diameter, len(p.stages)) for p in parachutes]
+    keys = [like_key(p) for p in parachutes]
     groups = list(dict.fromkeys(keys))
     per_kind = {}
     for key in groups:
@@ -108,9 +113,7 @@ def stage_exchanges(parachutes, column):
     for i, p in enumerate(parachutes):
         for j in range(i + 1, len(parachutes)):
             o = parachutes[j]
-            if p.load_cell or o.load_cell or \
-                    (p.kind, p.inflation, p.diameter, len(p.stages)) != (o.kind, o.inflation, o.diameter,
-                                                                          len(o.stages)):
+            if p.load_cell or o.load_cell or like_key(p) != like_key(o):
                 continue
             ci, cj = column(i, "cds_o"), column(j, "cds_o")
             eps = [(column(i, f"s{m + 1}.eps"), column(j, f"s{m + 1}.eps")) for m in range(len(p.stages))]
