@@ -31,6 +31,11 @@ import numpy as np
 # Data columns a logger bundle may hold, canonical names (each may have a ``<name>_sigma``).
 VELOCITY_COLUMNS = ("v_north", "v_east", "v_up")
 RATE_CHANNELS = ("G", "v", "altitude")
+# The receiver's latency prior (mean, 1-sigma), s: a sample stamped t shows the state at t − latency. Receivers
+# stamp velocity late by their filter's delay, up to ~1.5 s. The fit's prior (air_reconstruction.air_priors) and
+# the wind projection's best guess (cpas_bayes.data.attitude, kept for comparison) share it.
+LATENCY_PRIOR = (0.3, 0.5)
+WIND_SIGMA_WITHOUT_PROFILE = 10.0   # m/s per component: the wind prior's 1-sigma when test.toml has no [wind]
 
 
 @dataclass(frozen=True)

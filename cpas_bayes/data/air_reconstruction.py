@@ -55,7 +55,8 @@ import numpy as np
 import pandas as pd
 
 from cpas_bayes.core.errors import BundleError
-from cpas_bayes.data.air_data import VELOCITY_COLUMNS, channel_samples, sample_interval
+from cpas_bayes.data.air_data import LATENCY_PRIOR, VELOCITY_COLUMNS, WIND_SIGMA_WITHOUT_PROFILE, channel_samples, \
+    sample_interval
 from cpas_bayes.data.bundle import FlightTest, with_data
 from cpas_bayes.data.logger_events import EventNotFound, detect_release
 from cpas_bayes.physics import flight_path as fp
@@ -190,7 +191,7 @@ def air_priors(ch: LoggerChannels) -> dict:
     lead = abs(float(ch.gnss_time[0] - ch.accel_time[0]))
     h_sigma = max(20.0, 3.0 * float(ch.altitude_sigma[0]) if ch.altitude.size else 20.0) + 50.0 * lead
     s_v = max(15.0, 0.5 * speed)
-    w_sigma = 10.0 if ch.wind_sigma is None else max(ch.wind_sigma, 0.05)
+    w_sigma = WIND_SIGMA_WITHOUT_PROFILE if ch.wind_sigma is None else max(ch.wind_sigma, 0.05)
     return {
         "airspeed_0": PriorSpec(max(speed, 1.0), s_v, max(0.5, speed - 4 * s_v), speed + 4 * s_v),
         "flight_path_angle_0": PriorSpec(gamma, 30.0, -90.0, 90.0),
@@ -200,7 +201,7 @@ def air_priors(ch: LoggerChannels) -> dict:
         "wind_east": PriorSpec(0.0, w_sigma, -6 * w_sigma, 6 * w_sigma),
         "accel_scale": PriorSpec(1.0, 0.03, 0.8, 1.25),
         "accel_bias": PriorSpec(0.0, 0.05, -0.5, 0.5),
-        "gnss_latency": PriorSpec(0.3, 0.5, *LATENCY_RANGE),
+        "gnss_latency": PriorSpec(*LATENCY_PRIOR, *LATENCY_RANGE),
     }
 
 

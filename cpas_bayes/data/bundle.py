@@ -169,7 +169,7 @@ PARACHUTE_KEYS = ("id", "kind", "inflation", "diameter", "diameter_sigma", "weig
 STAGE_KEYS = ("label", "start", "start_sigma")
 # data.csv columns with a fixed meaning: no parachute's load_cell or flyout_angle may name one of them.
 _RESERVED = ("time", "G", "qbar", "airspeed", "gamma", "density", "altitude", "v_north", "v_east", "v_up",
-             "accel_x", "accel_y", "accel_z")
+             "accel_x", "accel_y", "accel_z", "q_w", "q_x", "q_y", "q_z")
 
 
 def _is_number(value):

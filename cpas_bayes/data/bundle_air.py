@@ -4,7 +4,9 @@ A bundle whose data.csv has neither ``qbar`` nor ``airspeed`` but velocity
 columns is a logger bundle. Its rows are the union of the accelerometer's and
 the receiver's sample times, so ``G``, the velocity components, ``altitude``,
 ``density`` and the parachute channels may be blank in a row (NaN in the
-test's data); the three velocity components are blank together. Its test.toml
+test's data); the three velocity components are blank together. Three body
+axes may replace ``G``, with or without attitude quaternions
+(:func:`read_attitude`, :mod:`cpas_bayes.data.attitude`). Its test.toml
 may hold ``[wind]``, ``[atmosphere]`` and ``[rate]``
 (:class:`~cpas_bayes.data.air_data.AirDataSpec`); a bundle with measured q̄ may not.
 
@@ -25,6 +27,7 @@ from cpas_bayes.core.inputs import shown
 from cpas_bayes.data import limits
 from cpas_bayes.data.air_data import RATE_CHANNELS, VELOCITY_COLUMNS, AirDataSpec, DensityProfile, WindProfile, \
     sample_interval
+from cpas_bayes.data.attitude import NORM_TOLERANCE, swing_load_factor
 from cpas_bayes.data.bundle_csv import blank_column
 from cpas_bayes.data.limits import check_column, check_value
 
@@ -32,7 +35,8 @@ AIR_TABLES = ("wind", "atmosphere", "rate")
 WIND_KEYS = ("altitude", "north", "east", "sigma")
 ATMOSPHERE_KEYS = ("altitude", "density")
 LOGGER_COLUMNS = VELOCITY_COLUMNS + ("altitude",)   # required in a logger bundle, each with a 1-sigma
-ACCEL_AXES = ("accel_x", "accel_y", "accel_z")      # three body axes (g) in place of G: their magnitude is used
+ACCEL_AXES = ("accel_x", "accel_y", "accel_z")      # three body axes (g) in place of G: their magnitude is used,
+QUATERNION = ("q_w", "q_x", "q_y", "q_z")           # or with attitude their drag component (data/attitude.py)
 MEASURED_COLUMNS = ("qbar", "airspeed")
 # Unit conversion of a logger bundle's own columns (bundle.COLUMN_QUANTITY holds these too).
 LOGGER_QUANTITY = {**{c: "speed" for c in VELOCITY_COLUMNS}, **{f"{c}_sigma": "speed" for c in VELOCITY_COLUMNS},
@@ -209,13 +213,9 @@ def parachute_channels(parachutes, names, path):
             yield column, canonical, kind, what
 
 
-def accelerometer_magnitude(raw, sigma_table, units, path):
-    """G and G_sigma from three body axes ``accel_x, accel_y, accel_z`` (g) without attitude: the magnitude.
-
-    |a| = √(a_x² + a_y² + a_z²) is the sensed load factor whatever the attitude; its 1-sigma is
-    √Σ(a_i·σ_i)²/|a| (σ_i from ``accel_<i>_sigma`` or [sigma]). The magnitude of noisy axes reads high where
-    |a| is small (by about 3σ²/(2|a|)): the fit's accelerometer bias takes the constant part of it.
-    """
+def read_axes(raw, sigma_table, units, path):
+    """The three body axes ``accel_x, accel_y, accel_z`` (g): values (N, 3), 1-sigmas (N, 3) from
+    ``accel_<i>_sigma`` or [sigma], and the rows that hold a reading (N,); refuses a reading missing an axis."""
     spec = limits.CHANNELS["G"]
     parts = [_channel(raw, c, spec, units, path) for c in ACCEL_AXES]
     present = np.all([np.isfinite(p) for p in parts], axis=0)
@@ -224,11 +224,86 @@ def accelerometer_magnitude(raw, sigma_table, units, path):
         raise BundleError(path, f"row {int(split[0]) + 2}, columns 'accel_x', 'accel_y', 'accel_z'",
                           "an axis is empty where the others are given", "give all three axes of each reading")
     sigmas = [_sigma(raw, c, p, sigma_table, spec, units, path) for c, p in zip(ACCEL_AXES, parts)]
-    magnitude = np.sqrt(sum(np.where(present, p, 0.0) ** 2 for p in parts))
-    sigma = np.sqrt(sum(np.where(present, p * s, 0.0) ** 2 for p, s in zip(parts, sigmas))) / np.maximum(magnitude, 1e-9)
+    return np.column_stack(parts), np.column_stack(sigmas), present
+
+
+def accelerometer_magnitude(axes, sigmas, present):
+    """G and G_sigma from :func:`read_axes` without attitude: the magnitude.
+
+    |a| = √(a_x² + a_y² + a_z²) is the sensed load factor whatever the attitude; its 1-sigma is
+    √Σ(a_i·σ_i)²/|a|. The magnitude of noisy axes reads high where |a| is small (by about σ²/|a| for equal
+    sigmas): the fit's accelerometer bias takes the constant part of it.
+    """
+    axes, sigmas = np.where(present[:, None], axes, 0.0), np.where(present[:, None], sigmas, 0.0)
+    magnitude = np.sqrt(np.sum(axes**2, axis=1))
+    sigma = np.sqrt(np.sum((axes * sigmas) ** 2, axis=1)) / np.maximum(magnitude, 1e-9)
     # Near zero magnitude the linear rule fails: never below the axes' own mean sigma.
-    sigma = np.maximum(sigma, np.sqrt(sum(np.where(present, s, 0.0) ** 2 for s in sigmas) / 3.0))
+    sigma = np.maximum(sigma, np.sqrt(np.sum(sigmas**2, axis=1) / 3.0))
     return {"G": np.where(present, magnitude, np.nan), "G_sigma": np.where(present, sigma, np.nan)}
+
+
+def _attitude_fault(path, i, what, fix):
+    return BundleError(path, f"row {i + 2}, columns {', '.join(repr(c) for c in QUATERNION)}", what, fix)
+
+
+def read_attitude(raw, path, present):
+    """The readings' attitude quaternions (N, 4), normalised, NaN on rows without a reading (``present``);
+    None when data.csv gives none. Refuses a partial quaternion, one without body axes, one whose norm is off
+    1 by more than NORM_TOLERANCE, and readings without attitude beside readings with it."""
+    given = [c for c in QUATERNION if c in raw.columns]
+    if not given:
+        return None
+    if len(given) < len(QUATERNION):
+        missing = next(c for c in QUATERNION if c not in given)
+        raise BundleError(path, f"column '{missing}'", f"data.csv gives {', '.join(given)} but not {missing}: an "
+                          "attitude quaternion has four components", "add the missing column (q_w, q_x, q_y, q_z, "
+                          "scalar first), or remove the quaternion columns (no attitude: the magnitude is used)")
+    q = np.column_stack([blank_column(raw, c, path) for c in QUATERNION])
+    have = np.isfinite(q)
+    full = have.all(axis=1)
+    split = np.flatnonzero(have.any(axis=1) & ~full)
+    if split.size:
+        i = int(split[0])
+        blank = ", ".join(c for c, g in zip(QUATERNION, have[i]) if not g)
+        raise _attitude_fault(path, i, f"{blank} empty where the other quaternion component(s) are given",
+                              "give all four components of the reading's attitude, or leave all four empty")
+    orphan = np.flatnonzero(full & ~present)
+    if orphan.size:
+        i = int(orphan[0])
+        what = ("an attitude quaternion, but data.csv gives G: the attitude rotates the body axes accel_x, "
+                "accel_y, accel_z, which are used in place of G") if "G" in raw.columns else \
+            "an attitude quaternion where accel_x, accel_y, accel_z are empty: the attitude belongs to a reading"
+        raise _attitude_fault(path, i, what, "give the quaternion on the rows of the readings it belongs to, with "
+                              "accel_x, accel_y, accel_z (and no G column), or remove it")
+    if not full.any():
+        return None
+    bare = np.flatnonzero(present & ~full)
+    if bare.size:
+        raise _attitude_fault(path, int(bare[0]), "a reading without attitude, while other readings have one: G "
+                              "would be the projection on some readings and the magnitude on others",
+                              "give the attitude of every reading, remove the readings without it, or remove the "
+                              "quaternion columns (no attitude: the magnitude is used)")
+    norm = np.linalg.norm(q, axis=1)
+    off = np.flatnonzero(full & (np.abs(norm - 1.0) > NORM_TOLERANCE))
+    if off.size:
+        i = int(off[0])
+        raise _attitude_fault(path, i, f"the quaternion's norm is {norm[i]:.6g}, off 1 by {abs(norm[i] - 1.0):.3g} "
+                              f"(more than {NORM_TOLERANCE:g}): not a unit quaternion",
+                              "normalise each quaternion to unit length; if they are, check the column order: "
+                              "q_w, q_x, q_y, q_z hold w, x, y, z, scalar first")
+    return q / norm[:, None]
+
+
+def attitude_load_factor(time, axes, attitude):
+    """G and G_sigma with attitude: the specific force along its own time-averaged direction, the drag's
+    (:func:`cpas_bayes.data.attitude.swing_load_factor`; neither the wind nor the receiver enters).
+
+    ``time`` is data.csv's (s), ``axes`` :func:`read_axes`'s answer and ``attitude`` :func:`read_attitude`'s.
+    """
+    a, sigma, present = axes
+    g, g_sigma = np.full(len(time), np.nan), np.full(len(time), np.nan)
+    g[present], g_sigma[present], _ = swing_load_factor(time[present], attitude[present], a[present], sigma[present])
+    return {"G": g, "G_sigma": g_sigma}
 
 
 def logger_columns(raw, meta, path):
@@ -237,21 +312,27 @@ def logger_columns(raw, meta, path):
     ``raw`` is data.csv as cell strings, ``meta`` test.toml's
     :class:`~cpas_bayes.data.bundle.BundleMetadata`. Refuses a missing column,
     a velocity row with one or two blank components, too few samples, a sample
-    without its 1-sigma and implausible values, naming ``path``, row and column.
+    without its 1-sigma, implausible values and a faulty attitude quaternion,
+    naming ``path``, row and column. With attitude, ``G`` is the body axes'
+    specific force along the drag direction (:func:`attitude_load_factor`).
     """
-    axes = "G" not in raw.columns and all(c in raw.columns for c in ACCEL_AXES)
-    missing = [c for c in ("G",) + LOGGER_COLUMNS if c not in raw.columns and not (c == "G" and axes)]
+    has_axes = "G" not in raw.columns and all(c in raw.columns for c in ACCEL_AXES)
+    missing = [c for c in ("G",) + LOGGER_COLUMNS if c not in raw.columns and not (c == "G" and has_axes)]
     if missing:
         listed = ", ".join(f"'{c}'" for c in missing)
         raise BundleError(path, f"column '{missing[0]}'", f"missing column(s) {listed}: a bundle without qbar and "
                           "airspeed is a logger bundle, which needs G (or accel_x, accel_y, accel_z), v_north, "
                           "v_east, v_up and altitude", EITHER_FIX)
     units, sigma_table, channels = meta.units, meta.sigma, limits.CHANNELS
-    if axes:
-        out = accelerometer_magnitude(raw, sigma_table, units, path)
+    axes = None
+    if has_axes:
+        axes = read_axes(raw, sigma_table, units, path)
+        out = accelerometer_magnitude(*axes)
+        attitude = read_attitude(raw, path, axes[2])
     else:
         out = {"G": _channel(raw, "G", channels["G"], units, path)}
         out["G_sigma"] = _sigma(raw, "G", out["G"], sigma_table, channels["G"], units, path)
+        attitude = read_attitude(raw, path, np.zeros(len(raw), bool))   # refuses any quaternion given
     _enough(out["G"], MIN_G_SAMPLES, "G", "accelerometer", path)
 
     v = {c: _channel(raw, c, channels[c], units, path) for c in VELOCITY_COLUMNS}
@@ -272,6 +353,8 @@ def logger_columns(raw, meta, path):
     out["altitude_sigma"] = _sigma(raw, "altitude", out["altitude"], sigma_table, channels["altitude"], units, path)
     if "density" in raw.columns:
         out["density"] = _channel(raw, "density", channels["density"], units, path)
+    if attitude is not None:
+        out.update(attitude_load_factor(blank_column(raw, "time", path), axes, attitude))
 
     for column, canonical, kind, _ in parachute_channels(meta.parachutes, raw.columns, path):
         out[canonical] = _channel(raw, column, channels[kind], units, path)

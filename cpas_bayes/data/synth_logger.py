@@ -46,7 +46,9 @@ With no wind it reproduces the planar simulator to ~1e-9 (a test holds it).
 Scenarios (``SCENARIOS``, uniform draws): ``logger-drop`` one unreefed Main
 (D_o 5–15 m, W_V 500–5,000 N, V0 40–90 m/s, γ0 −30–0°, one stage at 0.5–2 s,
 20 s), ``logger-drogue`` two reefed Drogues as synth's ``drogue`` but at
-100–150 m/s (25 s), ``logger-main`` three Mains as synth's ``main`` (45 s).
+100–150 m/s (25 s), ``logger-main`` three Mains as synth's ``main`` (45 s),
+``logger-attitude`` logger-drop logged as body axes with attitude and a swing
+(:mod:`cpas_bayes.data.synth_attitude`).
 Common to all: wind profile of 3–6 levels spanning the flown altitudes, each
 component within ±15 m/s, shear ≤ 10 m/s per km, stated sigma U(0.5, 3) m/s
 and true offsets N(0, sigma); accel_scale 1 + N(0, 0.01), accel_bias
@@ -60,7 +62,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numba
@@ -73,6 +75,8 @@ from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle
 from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data.air_reconstruction import AIR_PARAMETERS as AIR_DATA_KEYS
 from cpas_bayes.data.synth import FIRST_START_SIGMA, LATER_START_SIGMA, ChuteTruth, StageTruth
+from cpas_bayes.data.synth_attitude import AttitudeTruth, attitude_document, draw_attitude_truth, write_body_axes
+from cpas_bayes.data.synth_logger_effects import draw_breathing, effect_fields, effect_stream
 from cpas_bayes.data.synth_logger_scenarios import (ACCEL_BIAS_SIGMA, ACCEL_NOISE, ACCEL_RATES, ACCEL_SCALE_SIGMA,
                                                     ALTITUDE_SIGMA, DENSITY_GRID, GNSS_RATES, GNSS_SIGMA_H,
                                                     GNSS_SIGMA_V, LATENCY, SCENARIOS, WIND_LEVELS, WIND_LIMIT,
@@ -80,7 +84,7 @@ from cpas_bayes.data.synth_logger_scenarios import (ACCEL_BIAS_SIGMA, ACCEL_NOIS
 from cpas_bayes.physics.atmosphere import standard_density
 from cpas_bayes.physics.inflation import below_previous_code, decay_code, parachute_drag_area, parachute_stage_law
 
-LOGGER_SCENARIOS = ("logger-drop", "logger-drogue", "logger-main")
+LOGGER_SCENARIOS = ("logger-drop", "logger-drogue", "logger-main", "logger-attitude")
 SI = unit_system("SI")
 G0 = STANDARD_GRAVITY
 DECAY, BELOW_PREVIOUS = "linear", "drop"   # the stage-law options synth.py simulates with
@@ -116,6 +120,10 @@ class LoggerTruth:
     vehicle_cds_sigma: float
     parachute_weight_sigma: float
     atmosphere: DensityProfile | None = field(default=None)   # None: the 1976 standard atmosphere
+    attitude: AttitudeTruth | None = field(default=None)      # given: body axes with attitude in place of G
+    # Canopy breathing after each stage's peak (effects.breathing_factor): amplitude, Hz, damping ratio;
+    # amplitude 0 is none.
+    breathing: tuple[float, float, float] = (0.0, 1.0, 0.0)
 
     @property
     def total_weight(self):
@@ -185,7 +193,7 @@ def draw_logger_truth(scenario: str, rng: np.random.Generator) -> LoggerTruth:
         chutes.append(ChuteTruth(id=pid, kind=spec["kind"], inflation=spec["inflation"], diameter=diameter,
                                  weight=weight, cds_o=cds, stages=tuple(stages)))
     wind = _draw_wind(altitude0, spec["drop"], rng)
-    return LoggerTruth(
+    truth = LoggerTruth(
         scenario=scenario, duration=spec["duration"], vehicle_weight=vehicle_weight, vehicle_cds=vehicle_cds,
         chutes=tuple(chutes), airspeed_0=airspeed0, flight_path_angle_0=gamma0, heading_0=heading0,
         altitude_0=altitude0, wind=wind, wind_north=float(rng.normal(0.0, wind.sigma)),
@@ -196,6 +204,8 @@ def draw_logger_truth(scenario: str, rng: np.random.Generator) -> LoggerTruth:
         gnss_sigma_up=uniform(GNSS_SIGMA_V), altitude_sigma=uniform(ALTITUDE_SIGMA),
         vehicle_weight_sigma=spec["weight_sigma"], vehicle_cds_sigma=spec["cds_sigma"],
         parachute_weight_sigma=spec["parachute_weight_sigma"])
+    # drawn last: the other scenarios' draws stay as they were
+    return replace(truth, attitude=draw_attitude_truth(spec["attitude"], rng)) if "attitude" in spec else truth
 
 
 # ---------------------------------------------------------------------------
@@ -212,6 +222,7 @@ def _drag(t, y, v_start, law, body, dy, cds, scratch):
     stage_par, chute_par, n_stages, codes = law
     log_rho, wind, constants = body
     rho_base, mass, cds_v = constants[0], constants[1], constants[2]
+    amplitude, omega, damping = constants[3], 2.0 * math.pi * constants[4], constants[5]
     total = cds_v
     for p in range(cds.shape[0]):
         scratch[0, 0] = t
@@ -221,6 +232,16 @@ def _drag(t, y, v_start, law, body, dy, cds, scratch):
                             n_stages[p], codes[0], codes[1], True, True, scratch[1, :1], scratch[2], scratch[3],
                             scratch[4], scratch[5])
         cds[p] = scratch[1, 0]
+        if amplitude != 0.0:   # breathing: τ from the peak (start + t_fp, scratch[3]) of the active stage
+            active = -1
+            for k in range(n_stages[p]):
+                if stage_par[0, p, k] <= t:
+                    active = k
+            if active >= 0:
+                tau = t - stage_par[0, p, active] - scratch[3, active]
+                if tau >= 0.0:
+                    cds[p] *= 1.0 + amplitude * math.exp(-damping * omega * tau) * math.sin(
+                        omega * math.sqrt(1.0 - damping * damping) * tau)
         total += cds[p]
     van = y[3] - np.interp(y[2], wind[0], wind[1])
     vae = y[4] - np.interp(y[2], wind[0], wind[2])
@@ -389,7 +410,7 @@ def simulate_logger_trajectory(truth: LoggerTruth, step: float = MAX_STEP) -> Lo
     v_start = np.zeros(stage_par.shape[1:])
     codes = np.array([decay_code(DECAY), below_previous_code(BELOW_PREVIOUS)], dtype=np.int64)
     mass = truth.total_weight / G0
-    body = (np.log(rho), wind_table, np.array([heights[0], mass, truth.vehicle_cds]))
+    body = (np.log(rho), wind_table, np.array([heights[0], mass, truth.vehicle_cds, *truth.breathing]))
     states, rates, load, drag_areas = _integrate(h, n_steps, y0, v_start, (stage_par, chute_par, n_stages, codes),
                                                  body)
     time = h * np.arange(n_steps + 1)
@@ -467,9 +488,10 @@ def logger_truth_document(truth: LoggerTruth, trajectory: LoggerTrajectory) -> d
            "wind_sigma": float(w.sigma), "first_reading": first_reading_state(truth, trajectory),
            "stated_wind": {"altitude": [float(v) for v in w.altitude], "north": [float(v) for v in w.north],
                            "east": [float(v) for v in w.east]}}
-    return {"scenario": truth.scenario, "units": "SI", "effect": "none", "effect_params": {}, "effects": {},
-            "cause": "none", "causes": [], "vehicle_weight": truth.vehicle_weight, "vehicle_cds": truth.vehicle_cds,
-            "chutes": chutes, "peak_total_load": float(peak_total.max()), "air_data": air}
+    return {"scenario": truth.scenario, "units": "SI", **effect_fields(truth.breathing),
+            "vehicle_weight": truth.vehicle_weight, "vehicle_cds": truth.vehicle_cds,
+            "chutes": chutes, "peak_total_load": float(peak_total.max()), "air_data": air,
+            **attitude_document(truth.attitude)}
 
 
 def simulate_logger_test(truth: LoggerTruth, rng: np.random.Generator, name: str | None = None,
@@ -477,7 +499,8 @@ def simulate_logger_test(truth: LoggerTruth, rng: np.random.Generator, name: str
     """Simulate ``truth`` and its loggers; return the test (SI) and truth.json's dict.
 
     ``rng`` supplies every draw, in a fixed order: stated vehicle weight and CDS_V, stated stage
-    starts, accelerometer noise, GNSS velocity noise (north, east, up per sample), altitude noise.
+    starts, accelerometer noise, GNSS velocity noise (north, east, up per sample), altitude noise, and with
+    attitude the three axes' noise per reading.
     """
     trajectory = simulate_logger_trajectory(truth, step)
     t_acc, t_gnss = sample_times(truth)
@@ -512,6 +535,8 @@ def simulate_logger_test(truth: LoggerTruth, rng: np.random.Generator, name: str
         data[f"{c}_sigma"][rows_gnss] = sigma
     data["altitude"][rows_gnss] = position[:, 2] + h_noise
     data["altitude_sigma"][rows_gnss] = truth.altitude_sigma
+    if truth.attitude is not None:
+        write_body_axes(data, truth, trajectory, t_acc, rows_acc, rng.normal(0.0, truth.accel_sigma, (len(t_acc), 3)))
 
     parachutes = tuple(Parachute(id=c.id, kind=c.kind, inflation=c.inflation, diameter=c.diameter, weight=c.weight,
                                  weight_sigma=truth.parachute_weight_sigma, stages=stages)
@@ -531,16 +556,20 @@ def logger_streams(seed: int):
     return np.random.default_rng(truth_seq), np.random.default_rng(noise_seq)
 
 
-def synthesize_logger(scenario: str, seed: int, name: str | None = None):
-    """Draw and simulate one logger test from a seed: (FlightTest, truth dict)."""
+def synthesize_logger(scenario: str, seed: int, name: str | None = None, effect: str = "none", magnitude=None):
+    """Draw and simulate one logger test from a seed, with a hidden ``effect`` (:mod:`cpas_bayes.data.
+    synth_logger_effects`): (FlightTest, truth dict)."""
     truth_rng, noise_rng = logger_streams(seed)
     truth = draw_logger_truth(scenario, truth_rng)
-    return simulate_logger_test(truth, noise_rng, name=name or f"SYN-{scenario}-{seed}")
+    breathing = draw_breathing(effect, scenario, truth.chutes[0].diameter, effect_stream(seed), magnitude)
+    truth = replace(truth, breathing=breathing)
+    suffix = "" if effect == "none" else f"-{effect}"
+    return simulate_logger_test(truth, noise_rng, name=name or f"SYN-{scenario}-{seed}{suffix}")
 
 
-def write_logger_synthetic(scenario: str, seed: int, out) -> Path:
+def write_logger_synthetic(scenario: str, seed: int, out, effect: str = "none", magnitude=None) -> Path:
     """Simulate a logger test and write it as a bundle with its truth.json beside it; returns the folder."""
-    test, truth = synthesize_logger(scenario, seed)
+    test, truth = synthesize_logger(scenario, seed, effect=effect, magnitude=magnitude)
     return write_bundle(test, Path(out), extra_files={"truth.json": json.dumps(truth, indent=1) + "\n"})
 
 

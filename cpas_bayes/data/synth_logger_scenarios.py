@@ -46,3 +46,9 @@ SCENARIOS = {
         ck=(None, None, None), tk=(None, None, None),
         weight_sigma=445.0, cds_sigma=0.186, parachute_weight_sigma=8.9),
 }
+# logger-drop with body axes and attitude in place of G (cpas_bayes.data.synth_attitude): a slow yaw spin (deg/s,
+# either sense), a pendulum pitch and roll (deg amplitude) and a swing across v_air (fraction of the drag reading)
+# at one frequency (Hz).
+SCENARIOS["logger-attitude"] = dict(SCENARIOS["logger-drop"],
+                                    attitude=dict(spin=(2.0, 20.0), tilt=(5.0, 20.0), frequency=(0.2, 0.5),
+                                                  swing=(0.1, 0.3)))
