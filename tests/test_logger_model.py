@@ -32,8 +32,11 @@ def test_a_logger_bundle_gets_the_logger_model_with_the_air_parameters():
     assert "load_scale" not in model.names and "qbar" not in test.data
     groups = {p.name: p.group for p in model.parameters}
     assert all(groups[n] == "air data" for n in AIR_PARAMETERS)
-    with pytest.raises(ValueError, match="not yet available for logger bundles"):
-        prepare_model(test, reduce_test(test), extensions=("added_mass",))
+    from cpas_bayes.stats.model_terms import make_extension
+
+    for term, needs in (("added_mass", "a measured airspeed"), ("sensor_lag", "the load cells")):
+        with pytest.raises(ValueError, match=f"the {term} term needs {needs}"):
+            prepare_model(test, reduce_test(test), extensions=(make_extension(term),))
 
 
 @pytest.mark.parametrize("seed", [3, 6])
@@ -115,22 +118,11 @@ def test_a_slow_logger_is_warned_about_in_words_that_fit_the_averaging_model():
     assert fit_health.sample_rate_warnings(model, draws, sample_interval=0.005) == []
 
 
-def test_diagnose_refuses_a_logger_bundle_before_any_work(tmp_path, capsys):
-    """Not yet built for logger bundles: said plainly, exit status 2, no traceback, nothing written."""
-    from cpas_bayes.app.cli import main
-    from cpas_bayes.data.synth_logger import write_logger_synthetic
-
-    folder = write_logger_synthetic("logger-drop", 2, tmp_path / "tests" / "drop")
-    code = main(["diagnose", str(folder), "--out", str(tmp_path / "diag")])
-    captured = capsys.readouterr()
-    assert code == 2 and "diagnose does not yet take one" in captured.err and "Traceback" not in captured.err
-    assert not (tmp_path / "diag").exists()
-
-
 @pytest.mark.slow
-def test_a_campaign_of_logger_drops_fits_pools_and_runs_the_monte_carlo_without_a_diagnosis(tmp_path):
-    """Two seeded drops in one campaign: each is reduced and fitted, marked not diagnosed (the diagnosis is
-    not built for logger bundles), and both enter the memo and the Monte Carlo of their configuration."""
+def test_a_campaign_of_logger_drops_fits_pools_and_runs_the_monte_carlo(tmp_path):
+    """Two seeded drops in one campaign: each is reduced and fitted, and both enter the memo and the Monte
+    Carlo of their configuration. The diagnosis is off here (it runs by default): a logger diagnosis is
+    tests/test_logger_extensions.py's, and with it this test took 565 s instead of about 150."""
     import json
 
     from cpas_bayes.app.cli import main
@@ -141,7 +133,8 @@ def test_a_campaign_of_logger_drops_fits_pools_and_runs_the_monte_carlo_without_
         write_logger_synthetic("logger-drop", seed, folder / f"drop{seed}")
     config = tmp_path / "campaign.toml"
     config.write_text('workers = 1\n[fit]\nensembles = 1\nmax_steps = 1000\nstop = "tau"\ntau_factor = 10\n'
-                      "[montecarlo]\nruns = 400\n[compare]\nruns = 200\n[pool]\ndraws = 1000\n")
+                      "[diagnose]\nmode = \"off\"\n[montecarlo]\nruns = 400\n[compare]\nruns = 200\n"
+                      "[pool]\ndraws = 1000\n")
     out = tmp_path / "out"
     assert main(["campaign", str(folder), "--out", str(out), "--config", str(config)]) == 0
     manifest = json.loads((out / "campaign.json").read_text())
@@ -152,4 +145,3 @@ def test_a_campaign_of_logger_drops_fits_pools_and_runs_the_monte_carlo_without_
         assert steps[f"{name} fit"] == "ran"
         assert (out / "tests" / name / "fit" / "posterior.nc").stat().st_size > 0
     assert (out / "memo" / "memo.toml").is_file()
-    assert "not diagnosed" in (out / "index.html").read_text()

@@ -3,8 +3,8 @@
 ``run_campaign(DIR, OUT, config)`` (``cpas-bayes campaign DIR --out OUT``):
 
 1. validate every bundle in DIR (all problems reported together, nothing run);
-2. per test: reduce, fit (posterior + figures + checks), diagnose (not a logger
-   bundle's: its diagnosis is not built; the report marks it not diagnosed);
+2. per test: reduce, fit (posterior + figures + checks), diagnose (a logger
+   bundle's with the terms that apply to it: breathing and the discrepancy);
 3. pool the fits by parachute kind and stage into the memo (the fit of a test
    whose diagnosis names a *measurement* cause — friction drift, sensor lag —
    is replaced by its extended fit, whose inflation parameters are free of it;
@@ -494,7 +494,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
             if config.fit_proposal != "de":  # fits of DE alone, the only proposal before, keep their keys
                 fit_opts["fit_proposal"] = config.fit_proposal
         fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
-        if config.diagnose != "off" and test.measured_qbar:   # a logger bundle's diagnosis is not built yet
+        if config.diagnose != "off":
             diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))
         jobs.append((test, config, out, bundle_key, fit_keys[test.name], diag_keys.get(test.name)))
     if executor.workers > 1 and len(jobs) >= executor.workers:

@@ -185,11 +185,13 @@ def _effect_name(ctx, param, value):
 
 
 @cli.command("synth")
-@click.option("--scenario", type=click.Choice(["drogue", "main", "logger-drop", "logger-drogue", "logger-main"]),
+@click.option("--scenario", type=click.Choice(["drogue", "main", "logger-drop", "logger-attitude", "logger-drogue",
+                                                "logger-main"]),
               required=True,
               help="Scenario library entry: two Drogues (infinite mass) or three Mains (finite mass), with q̄ and "
                    "load cells; or a logger test without q̄ (accelerometer and GNSS): one unreefed canopy "
-                   "(logger-drop), two reefed Drogues, three reefed Mains.")
+                   "(logger-drop; logger-attitude: three body axes and quaternions of a swinging vehicle), two "
+                   "reefed Drogues, three reefed Mains.")
 @click.option("--effect", default="none", show_default=True, callback=_effect_name,
               help="Hidden effect to put in the data: none; catalogued: added_mass, friction_drift, sensor_lag, "
                    "canopy_breathing; outside the catalogue: pitot_lag, accelerometer_clipping, riser_ringing, "
@@ -208,12 +210,20 @@ def synth_command(scenario, effect, magnitude, seed, out):
     if magnitude and effect == "none":
         raise click.BadParameter("a magnitude needs an effect other than 'none'", param_hint="--magnitude")
     if scenario.startswith("logger-"):
-        if effect != "none":
-            raise click.BadParameter(f"logger scenarios have no hidden effects yet; drop --effect {effect}",
-                                     param_hint="--effect")
         from cpas_bayes.data.synth_logger import write_logger_synthetic
-        folder = write_logger_synthetic(scenario, seed, out)
-        click.echo(f"wrote {folder} ({scenario}, seed {seed}) with truth.json")
+        from cpas_bayes.data.synth_logger_effects import LOGGER_EFFECTS
+        if effect not in LOGGER_EFFECTS:
+            raise click.BadParameter(f"logger scenarios take the effects {', '.join(LOGGER_EFFECTS)}; "
+                                     f"drop --effect {effect} or choose one of those", param_hint="--effect")
+        if len(magnitude) > 1:
+            raise click.BadParameter(f"one effect takes one --magnitude, got {len(magnitude)}",
+                                     param_hint="--magnitude")
+        try:
+            folder = write_logger_synthetic(scenario, seed, out, effect=effect,
+                                            magnitude=magnitude[0] if magnitude else None)
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--magnitude") from None
+        click.echo(f"wrote {folder} ({scenario}, effect {effect}, seed {seed}) with truth.json")
         return
     if not magnitude:
         magnitude = None
@@ -471,11 +481,6 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
         raise click.BadParameter(f"{sorted({n for n in names if names.count(n) > 1})[0]} is given twice",
                                  param_hint="--candidates")
     test = read_bundle(bundle)
-    if not test.measured_qbar:
-        raise InputError(bundle, "data.csv", "a logger bundle (GNSS velocity and altitude, no measured q̄): "
-                         "diagnose does not yet take one (its model terms are built on a measured q̄)",
-                         f"fit it with cpas-bayes fit {bundle} --out DIR; its fit-health warnings and figures say "
-                         "how well the baseline fits")
     _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
                               sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))

@@ -457,7 +457,9 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     terms = [n for n in options.candidates if n in PHYSICAL and applies(n, test)]
     skipped = [n for n in options.candidates if n in PHYSICAL and n not in terms]
     if skipped:
-        warnings.append(f"not tried: {', '.join(skipped)} (they act on load cells, and the test has none)")
+        why = ("they act on load cells, and the test has none" if test.measured_qbar else
+               "a logger bundle has no load cells, and the added mass reads a measured q̄")
+        warnings.append(f"not tried: {', '.join(skipped)} ({why})")
     generic = [n for n in options.candidates if n not in PHYSICAL and n != DISCREPANCY]
 
     # the discrepancy, the model forms and any generic alternatives asked for, side by side

@@ -39,7 +39,16 @@ acc = W_T,stated·mean reading/q̄_ref − CDS_V,stated, its 1-sigma the margina
 one, and the prediction is mapped by the same fixed affine transform; q̄_ref
 sets the units of that view, not the fit.
 
-Extensions (added mass, breathing, ...) are not yet available on this model.
+Extensions. A term that reshapes the drag area (canopy breathing) acts on the
+averaging nodes of step 3. A term with its own error model (the generic
+discrepancy, AR(1) errors) acts on the bins given the receiver: their
+residuals are whitened with the Cholesky factor of that conditional
+covariance, z = L_gg⁻¹·(reading residual)/λ, so z_i is the innovation of bin i
+given the receiver and the bins before it and Σ z_i² is the bins' part of the
+joint. The pointwise log-likelihood (PSIS-LOO, model comparison) is these
+sequential conditionals, in reading units; the receiver's part is common to
+every bin and left out of it. Terms on the load cells and the added mass (it
+reads a measured airspeed and q̄) do not apply.
 """
 
 from __future__ import annotations
@@ -56,7 +65,7 @@ from cpas_bayes.physics import flight_path as fp
 from cpas_bayes.physics.inflation import cluster_drag_area
 from cpas_bayes.stats.distributions import TruncNormal
 from cpas_bayes.stats.model import TestModel
-from cpas_bayes.stats.model_parts import Parameter, Prediction
+from cpas_bayes.stats.model_parts import Context, Parameter, Prediction
 from cpas_bayes.stats.observations import STEADY_BIN, TRANSIENT_BIN, TRANSIENT_WINDOW, Observations
 
 AVERAGING_STEP = 0.01   # s between the points that average the model over a reading's interval
@@ -195,9 +204,11 @@ class LoggerModel(TestModel):
 
     def __init__(self, test: FlightTest, kind_priors: dict, nuisance, decay="linear", extensions=(),
                  cluster="individual", below_previous="drop", estimate=None):
-        if extensions:
-            raise ValueError("model extensions are not yet available for logger bundles (no measured qbar); "
-                             "fit the baseline model")
+        for ext in extensions:
+            if ext.needs_load_cells or ext.needs_measured_airspeed:
+                what = "the load cells" if ext.needs_load_cells else "a measured airspeed and q̄"
+                raise ValueError(f"the {ext.name} term needs {what}, which a logger bundle does not have; "
+                                 "leave it out (canopy_breathing, discrepancy and correlated_noise apply)")
         self.channels = air.logger_channels(test)
         self.air_estimate = estimate if estimate is not None else air.best_estimate_trajectory(test)
         self._air_priors = self.air_estimate.priors
@@ -207,11 +218,15 @@ class LoggerModel(TestModel):
         # bins' errors have mean L_gr·L_rr⁻¹·r (the walk the receiver saw) and covariance L_gg·L_ggᵀ.
         k = chol.shape[0] - self.bins.q_ref.size
         self._chol_rr, self._chol_gr, self._chol_gg = chol[:k, :k], chol[k:, :k], chol[k:, k:]
+        self._log_det_rr = float(np.log(np.diag(self._chol_rr)).sum())   # ½·log det of each block
+        self._log_diag_gg = np.log(np.diag(self._chol_gg))
+        # Set before the base class: an extension may whiten while declaring its parameters.
+        self._to_reading = self.bins.q_ref / test.total_weight   # drag-area residual -> reading residual, g
         # Per-bin diagnostics (pointwise log-likelihood, residual checks) read the conditional marginal sigmas;
         # set before the base class derives its per-bin constants from them.
         conditional = np.sqrt((self._chol_gg**2).sum(axis=1))
         obs = replace(obs, acc_sigma=test.total_weight * conditional / self.bins.q_ref)
-        super().__init__(test, obs, kind_priors, nuisance, decay=decay, extensions=(), cluster=cluster,
+        super().__init__(test, obs, kind_priors, nuisance, decay=decay, extensions=extensions, cluster=cluster,
                          below_previous=below_previous)
         self._air_index = np.array([self.index[n] for n in air.AIR_PARAMETERS])
         # The averaging nodes are the same for every row: their interpolation weights on the reconstruction's
@@ -231,10 +246,6 @@ class LoggerModel(TestModel):
             p = self._air_priors[name]
             params.append(Parameter(name, TruncNormal(p.mu, p.sigma, p.low, p.high), units[name], "air data"))
         return params
-
-    @property
-    def name(self):
-        return "baseline"
 
     def initial_values(self):
         """The best-estimate trajectory's air parameters: the MAP search starts there."""
@@ -279,6 +290,11 @@ class LoggerModel(TestModel):
         v_node = speed[:, right - 1] + w * (speed[:, right] - speed[:, right - 1]) + self._node_speed_bend
         q_node = 0.5 * (rho[:, right - 1] + w * (rho[:, right] - rho[:, right - 1])) * v_node**2
         cds, timing = self.drag_areas(stage, self.bins.node_time)
+        if self.extensions:
+            stage["timing"] = timing
+            ctx = Context(self, theta, values, self.bins.node_time, stage)
+            for ext in self.extensions:
+                cds = ext.reshape_drag_area(ctx, cds, self.bins.node_time)
         total_weight = values["vehicle_weight"] + self.chute_weight.sum()
         g_node = q_node * (cds.sum(axis=1) + values["vehicle_cds"][:, None]) / total_weight[:, None]
         weight, first = self.bins.node_weight, self.bins.first_node
@@ -306,14 +322,50 @@ class LoggerModel(TestModel):
 
     # -- likelihood -----------------------------------------------------------
 
+    def whiten(self, y):
+        """Whiten drag-area residuals y (..., 1, N) of the bins given the receiver: L_gg⁻¹ of the reading
+        residuals, along the bins (multiplier excluded)."""
+        y = np.asarray(y, float)
+        flat = (y * self._to_reading).reshape(-1, y.shape[-1])
+        return solve_triangular(self._chol_gg, flat.T, lower=True, check_finite=False).T.reshape(y.shape)
+
+    def whitened_residuals(self, theta, pred):
+        """The bins' innovations z (B, 1, N), z ~ N(0, I) under the model, and log det per bin (B, N) of
+        their sequential conditional variances λ²·L_ii² (reading units; the sum is log det λ²·Σ_gg)."""
+        r = (self.obs.acc[None] - pred.acc) / pred.noise_acc[:, None]
+        log_det = 2.0 * (self._log_diag_gg[None] + np.log(pred.noise_acc)[:, None])
+        return self.whiten(r[:, None, :]), log_det
+
+    def pointwise_log_likelihood(self, theta, pred=None, by_channel=False):
+        """Per bin (B, N): log p(bin i | receiver, bins before i), which sums to the bins' part of the joint;
+        an extension's own error model when it has one. ``by_channel``: the base class's per-bin marginals."""
+        if by_channel:
+            return super().pointwise_log_likelihood(theta, pred, by_channel=True)
+        theta = np.atleast_2d(theta)
+        pred = self.predict(theta) if pred is None else pred
+        if self.replaces_error_model:
+            ctx = Context(self, theta, self.values(theta), self.obs.time)
+            for ext in self.extensions:
+                ll = ext.log_likelihood(ctx, pred, self.obs)
+                if ll is not None:
+                    return ll
+        z, log_det = self.whitened_residuals(theta, pred)
+        return -0.5 * (z[:, 0] ** 2 + log_det + _LOG_2PI)
+
     def log_likelihood(self, theta):
         """Receiver samples and reading bins jointly normal, covariance noise_acc²·Σ (:func:`joint_errors`), (B,):
-        log p(receiver) + log p(bins | receiver), which is the joint exactly."""
+        log p(receiver) + log p(bins | receiver), which is the joint exactly. An extension with its own error
+        model replaces the second part."""
         theta = np.atleast_2d(theta)
         pred, z_r = self._predict(theta)
-        r_g = (self.obs.acc[None] - pred.acc) * self.bins.q_ref[None] / self.stated_total_weight
-        z_g = solve_triangular(self._chol_gg, r_g.T, lower=True, check_finite=False).T
-        k = z_r.shape[1] + z_g.shape[1]
         noise = pred.noise_acc
-        quad = (z_r**2).sum(axis=1) + (z_g**2).sum(axis=1)
-        return -0.5 * quad / noise**2 - k * np.log(noise) - 0.5 * self._errors_log_det - 0.5 * k * _LOG_2PI
+        k_r = z_r.shape[1]
+        receiver = (-0.5 * (z_r**2).sum(axis=1) / noise**2 - k_r * np.log(noise) - self._log_det_rr
+                    - 0.5 * k_r * _LOG_2PI)
+        if self.replaces_error_model:
+            ctx = Context(self, theta, self.values(theta), self.obs.time)
+            for ext in self.extensions:
+                total = ext.total_log_likelihood(ctx, pred, self.obs)
+                if total is not None:
+                    return receiver + total
+        return receiver + self.pointwise_log_likelihood(theta, pred).sum(axis=1)

@@ -61,6 +61,7 @@ class Extension:
     practical_floor = None
     physical_lower_limits = ()    # parameters whose prior's lower bound is a physical limit (a lag of 0), not an edge
     needs_load_cells = False      # a term acting on load cells only does not apply without them
+    needs_measured_airspeed = False   # a term built on the measured airspeed and q̄ (not on a logger bundle)
 
     def parameters(self, model):
         return []

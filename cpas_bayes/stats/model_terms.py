@@ -70,6 +70,8 @@ class AddedMass(Extension):
     name = "added_mass"
     practical_floor = ("k_a", 0.05)   # below: < 1/4 of the smallest added mass the Drogue tests suggest
     physical_lower_limits = ("mass_lag",)
+    # Reads the measured airspeed, q̄ and flight-path angle (obs.*_at); a logger bundle's are the fit's own.
+    needs_measured_airspeed = True
 
     def parameters(self, model):
         obs = model.obs
@@ -233,8 +235,12 @@ PHYSICAL = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
 
 def applies(name, test):
-    """Whether term ``name`` can act on the channels ``test`` has (load-cell terms need load cells)."""
-    return not EXTENSIONS[name].needs_load_cells or any(p.load_cell for p in test.parachutes)
+    """Whether term ``name`` can act on the channels ``test`` has (load-cell terms need load cells, the
+    added mass a measured q̄)."""
+    term = EXTENSIONS[name]
+    if term.needs_measured_airspeed and not test.measured_qbar:
+        return False
+    return not term.needs_load_cells or any(p.load_cell for p in test.parachutes)
 
 
 def make_extension(name, **options):
