@@ -19,11 +19,15 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/cpas-bayes demo --out reports/demo
 
+# One BLAS thread per test worker: WORKERS processes on as many cores, each with a spinning BLAS pool, would
+# oversubscribe them (the package's own workers limit themselves the same way, core/executor.py).
+ONE_THREAD := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+
 test: $(STAMP)
-	$(PY) -m pytest -n $(WORKERS) -q
+	$(ONE_THREAD) $(PY) -m pytest -n $(WORKERS) -q
 
 test-quick: $(STAMP)
-	$(PY) -m pytest -n $(WORKERS) -q -m "not slow"
+	$(ONE_THREAD) $(PY) -m pytest -n $(WORKERS) -q -m "not slow"
 
 bench: $(STAMP)
 	$(PY) benchmarks/run.py

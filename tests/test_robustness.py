@@ -155,7 +155,10 @@ def test_ctrl_c_stops_a_fit_with_a_resumable_checkpoint_and_says_how_to_resume(t
     # fast or loaded the machine (the default target can be met a few chunks after the first checkpoint)
     process = subprocess.Popen([sys.executable, "-m", "cpas_bayes.app.cli", "fit", str(bundle), "--out", str(out),
                                 "--workers", "2", "--ess-target", "100000"], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, env=env)
+                               stderr=subprocess.PIPE, text=True, env=env,
+                               # as a shell starts a foreground command: a suite run as a background job
+                               # (nohup ... &) would pass SIGINT on ignored, and the fit keeps it so
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     _wait_for(out / "checkpoint" / "ensemble_0.h5", process)
     process.send_signal(signal.SIGINT)
     stdout, stderr = process.communicate(timeout=60)

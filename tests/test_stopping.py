@@ -157,7 +157,9 @@ def test_an_interrupted_ess_run_resumes_to_the_same_draws(tmp_path, proposal):
     """A kill mid-round leaves ensembles at different chunks; the rerun catches up, replays the checks (and
     refits the adaptive proposal from the same stored draws) and ends with the draws of an uninterrupted run."""
     model, inits, seeds = _toy()
-    options = _ess_options(1500 if proposal == "de" else 15000, proposal=proposal)
+    # targets the rule reaches after the 300-step interruption (800 steps adaptive): one beyond the kept-draws
+    # cap (stopping.KEPT_DRAWS per ensemble) would run both fits to max_steps, minutes for nothing
+    options = _ess_options(1500 if proposal == "de" else 4000, proposal=proposal)
     uninterrupted, seen = run_ensembles(model, inits, seeds, options)
     ckpts = [tmp_path / f"ensemble_{e}.h5" for e in range(4)]
     part = SamplerOptions(stop="ess", ess_target=options.ess_target, check_every=100, store_every=1, max_steps=300,
