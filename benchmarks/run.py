@@ -317,6 +317,16 @@ def bench_parallel():
 
 CAMPAIGN_TESTS = 50
 
+
+def _logger_bundle(scenario, seed, effect="none"):
+    """A synthetic logger bundle (no q̄: accelerometer and GNSS) in a folder that lives as long as the process."""
+    import tempfile
+
+    from cpas_bayes.data.synth_logger import write_logger_synthetic
+
+    folder = Path(tempfile.mkdtemp(prefix="cpas-bench-")) / f"{scenario}-{seed}"
+    return write_logger_synthetic(scenario, seed, folder, effect=effect, magnitude=0.08 if effect != "none" else None)
+
 BENCHES = {
     "fit_drogue": lambda: bench_fit(next(p for p in example_bundles() if p.name.startswith("drogue"))),
     "fit_main": lambda: bench_fit(next(p for p in example_bundles() if p.name.startswith("main"))),
@@ -329,6 +339,9 @@ BENCHES = {
     "diagnose_main": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("main")), "full"),
     "diagnose_screen_main": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("main")),
                                                    "screen"),
+    "fit_logger_drop": lambda: bench_fit(_logger_bundle("logger-drop", 3)),
+    "fit_command_logger_drop": lambda: bench_fit_command(_logger_bundle("logger-drop", 3)),
+    "diagnose_logger_drop": lambda: bench_diagnose(_logger_bundle("logger-drop", 3, "canopy_breathing"), "screen"),
     "montecarlo_main": bench_montecarlo,
     "parallel": bench_parallel,
     "campaign": lambda: bench_campaign(CAMPAIGN_TESTS),
