@@ -151,11 +151,3 @@ def same_test():
 def us_to_si():
     """Hand-computed factors from US bundle units to SI, by quantity."""
     return dict(US_TO_SI)
-
-
-def pytest_collection_modifyitems(config, items):
-    """Slow tests first (a stable sort). Under pytest-xdist the last items collected run last; a minutes-long
-    test there keeps one worker busy while the other idles, so the long ones start while quick ones can
-    still fill the gaps (longest-first scheduling)."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
-
