@@ -343,12 +343,10 @@ class LoggerModel(TestModel):
             return super().pointwise_log_likelihood(theta, pred, by_channel=True)
         theta = np.atleast_2d(theta)
         pred = self.predict(theta) if pred is None else pred
-        if self.replaces_error_model:
-            ctx = Context(self, theta, self.values(theta), self.obs.time)
-            for ext in self.extensions:
-                ll = ext.log_likelihood(ctx, pred, self.obs)
-                if ll is not None:
-                    return ll
+        if self.replaces_error_model:   # not on the baseline's hot path
+            _, ll = self._error_model_pointwise(theta, pred)
+            if ll is not None:
+                return ll
         z, log_det = self.whitened_residuals(theta, pred)
         return -0.5 * (z[:, 0] ** 2 + log_det + _LOG_2PI)
 
@@ -363,9 +361,5 @@ class LoggerModel(TestModel):
         receiver = (-0.5 * (z_r**2).sum(axis=1) / noise**2 - k_r * np.log(noise) - self._log_det_rr
                     - 0.5 * k_r * _LOG_2PI)
         if self.replaces_error_model:
-            ctx = Context(self, theta, self.values(theta), self.obs.time)
-            for ext in self.extensions:
-                total = ext.total_log_likelihood(ctx, pred, self.obs)
-                if total is not None:
-                    return receiver + total
+            return receiver + self._error_model_total(theta, pred)
         return receiver + self.pointwise_log_likelihood(theta, pred).sum(axis=1)

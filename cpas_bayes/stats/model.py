@@ -450,14 +450,12 @@ class TestModel:
         """
         theta = np.atleast_2d(theta)
         pred = self.predict(theta) if pred is None else pred
-        ctx = Context(self, theta, self.values(theta), self.obs.time)
-        for ext in self.extensions:
-            ll = ext.log_likelihood(ctx, pred, self.obs)
-            if ll is not None:
-                if by_channel:
-                    raise ValueError(f"the {ext.name} error model has no per-channel log-likelihood; "
-                                     "ask for the joint one (by_channel=False)")
-                return ll
+        ext, ll = self._error_model_pointwise(theta, pred)
+        if ll is not None:
+            if by_channel:
+                raise ValueError(f"the {ext.name} error model has no per-channel log-likelihood; "
+                                 "ask for the joint one (by_channel=False)")
+            return ll
         obs = self.obs
         if by_channel:
             var_acc = pred.noise_acc[:, None] ** 2 * (obs.acc_sigma**2 + obs.acc_qbar**2)
@@ -467,6 +465,25 @@ class TestModel:
             return ll_acc, ll_lc
         quad, _, _ = self._quadratic_form(theta, pred)
         return -0.5 * quad - self._log_multipliers(pred)[:, None] + self._ll_const
+
+    def _error_model_pointwise(self, theta, pred):
+        """(term, pointwise values (B, N)) of the first extension with an error model of its own, else (None, None)."""
+        ctx = Context(self, theta, self.values(theta), self.obs.time)
+        for ext in self.extensions:
+            ll = ext.log_likelihood(ctx, pred, self.obs)
+            if ll is not None:
+                return ext, ll
+        return None, None
+
+    def _error_model_total(self, theta, pred):
+        """The joint log-likelihood (B,) under an extension's own error model: its total where it has one
+        (a marginalised discrepancy), else the sum of the pointwise values."""
+        ctx = Context(self, theta, self.values(theta), self.obs.time)
+        for ext in self.extensions:
+            total = ext.total_log_likelihood(ctx, pred, self.obs)
+            if total is not None:
+                return total
+        return self.pointwise_log_likelihood(theta, pred).sum(axis=1)
 
     @property
     def replaces_error_model(self):
@@ -480,12 +497,7 @@ class TestModel:
             return self._baseline_log_likelihood(theta)
         pred = self.predict(theta)
         if self.replaces_error_model:
-            ctx = Context(self, theta, self.values(theta), self.obs.time)
-            for ext in self.extensions:
-                total = ext.total_log_likelihood(ctx, pred, self.obs)
-                if total is not None:
-                    return total
-            return self.pointwise_log_likelihood(theta, pred).sum(axis=1)
+            return self._error_model_total(theta, pred)
         quad, _, _ = self._quadratic_form(theta, pred)
         return (-0.5 * quad.sum(axis=1) - self.obs.n_bins * self._log_multipliers(pred)
                 + self._ll_const.sum())
