@@ -115,3 +115,44 @@ def test_a_signal_the_process_was_started_ignoring_stays_ignored():
     out = _run(body)
     assert out.returncode == 0, out.stderr
     assert "ignored inside True requested False" in out.stdout and "after True" in out.stdout
+
+
+def test_submit_runs_in_order_of_need_and_gives_the_same_results_on_every_executor():
+    """``submit`` starts a task and returns a handle: on a pool it runs while the caller works; on the serial
+    executor it runs when its result is first asked for, after the caller's own work."""
+    from cpas_bayes.core.executor import Executor, ProcessExecutor
+
+    order = []
+
+    def task(x):
+        order.append(("task", x))
+        return x * x
+
+    handle = Executor().submit(task, 3)
+    order.append(("caller", None))
+    assert handle.result() == 9 and handle.result() == 9
+    assert order == [("caller", None), ("task", 3)]      # run once, when asked
+    with ProcessExecutor(2) as ex:
+        handles = [ex.submit(abs, -v) for v in range(5)]
+        assert [h.result() for h in handles] == list(range(5))
+
+
+def test_a_wait_on_a_submitted_task_stops_within_a_second_after_a_dropped_interrupt():
+    body = textwrap.dedent("""
+        from cpas_bayes.core import interrupts
+        from cpas_bayes.core.executor import ProcessExecutor
+        if __name__ == "__main__":
+            with interrupts.catching(), ProcessExecutor(1) as ex:
+                ex.map(abs, [1])
+                handle = ex.submit(time.sleep, 30)
+                drop_an_interrupt()
+                started = time.perf_counter()
+                try:
+                    handle.result()
+                except KeyboardInterrupt:
+                    print(f'stopped after {time.perf_counter() - started:.2f} s')
+    """)
+    out = _run(body)
+    assert out.returncode == 0, out.stderr
+    assert "stopped after" in out.stdout, (out.stdout, out.stderr)
+    assert float(out.stdout.split("stopped after")[1].split()[0]) < 1.0

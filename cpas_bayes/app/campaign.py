@@ -217,10 +217,16 @@ def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
                               below_previous=config.below_previous)
         fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint,
                         executor=executor)
-        checks = run_checks(fit, rng=config.seed)
-        warnings = record_checks(fit, checks, tmp)
+        found = {}
+
+        def checks():   # run while the workers draw the figures that need none
+            found["checks"] = run_checks(fit, rng=config.seed)
+            found["warnings"] = record_checks(fit, found["checks"], tmp)
+            write_json(tmp / "checks.json", check_report(fit, checks=found["checks"]))
+            return found["checks"]
+
         write_fit_figures(fit, tmp, checks=checks, executor=executor)
-        write_json(tmp / "checks.json", check_report(fit, checks=checks))
+        warnings = found["warnings"]
         write_json(tmp / "map.json", {"names": list(model.names),
                                       "theta": [float(v) for v in fit.sampling.theta_map],
                                       "log_posterior": float(fit.sampling.log_post_map)})

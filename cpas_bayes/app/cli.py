@@ -295,8 +295,13 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
                   "rerun the same command to resume from it")
     with _executor(min(workers, ensembles), scheduler) as executor:
         fit = fit_model(model, options, out=out, echo=click.echo, executor=executor)
-        checks = run_checks(fit, rng=0)
-        warnings = record_checks(fit, checks, out)
+
+        def checks():   # run while the workers draw the figures that need none
+            found = run_checks(fit, rng=0)
+            warnings.extend(record_checks(fit, found, out))
+            return found
+
+        warnings = []
         figures = write_fit_figures(fit, out, checks=checks, executor=executor)
     d = fit.summary["diagnostics"]
     click.echo(f"{'converged' if d['converged'] else 'NOT converged'}: R-hat max {d['rhat_max']:.4f}, "

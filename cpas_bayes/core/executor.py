@@ -7,6 +7,9 @@ ensembles, a diagnosis' candidates, a campaign's tests, Monte Carlo batches)::
     with make_executor(workers=4, scheduler="local") as ex:   # a Dask LocalCluster
     with make_executor(scheduler="tcp://host:8786") as ex:    # a running Dask scheduler
         results = ex.map(task, items)
+        later = ex.submit(task, item)    # starts now (in this process: when asked)
+        ...                              # other work here meanwhile
+        result = later.result()
 
 ``map`` returns the results in the order of ``items`` whatever order they
 finished in, and every task carries its own seed, so a step gives the same
@@ -219,6 +222,11 @@ class Executor:
                 bar.update(1)
         return out
 
+    def submit(self, fn, item):
+        """Start ``fn(item)`` and return a handle whose ``result()`` waits for it. Here the task runs
+        when ``result()`` is first called, so work done meanwhile in this process comes first."""
+        return _Deferred(fn, item)
+
     def describe(self):
         return "this process"
 
@@ -231,6 +239,39 @@ class Executor:
     def __exit__(self, *exc):
         self.close()
         return False
+
+
+class _Deferred:
+    """A task of the serial executor: run on the first ``result()``."""
+
+    def __init__(self, fn, item):
+        self._fn, self._item, self._done, self._value = fn, item, False, None
+
+    def result(self):
+        if not self._done:
+            raise_if_requested()
+            self._value, self._done, self._item = self._fn(self._item), True, None
+        return self._value
+
+
+class _Pending:
+    """A task submitted to a pool or cluster: ``result()`` waits in short steps, so that Ctrl-C stays
+    responsive (:mod:`cpas_bayes.core.interrupts`); on an interrupt or error it calls ``on_failure``."""
+
+    def __init__(self, future, on_failure):
+        self._future, self._on_failure = future, on_failure
+
+    def result(self):
+        try:
+            while True:
+                raise_if_requested()
+                try:
+                    return self._future.result(timeout=0.1)
+                except TimeoutError:
+                    continue
+        except BaseException:
+            self._on_failure(self._future)
+            raise
 
 
 def _call_reporting(args):
@@ -343,6 +384,12 @@ class ProcessExecutor(Executor):
             self._terminate()
             raise
 
+    def submit(self, fn, item):
+        """Start ``fn(item)`` on a worker now; ``result()`` of the handle waits for it (Ctrl-C or a failure
+        stops the pool, as in :meth:`map`)."""
+        future = self._ensure_pool().submit(_call_reporting, (fn, item, None))
+        return _Pending(future, lambda f: (f.cancel(), self._terminate()))
+
     def _terminate(self):
         import multiprocessing as mp
 
@@ -427,6 +474,10 @@ class DaskExecutor(Executor):
         except BaseException:
             self.client.cancel(futures)
             raise
+
+    def submit(self, fn, item):
+        """Start ``fn(item)`` on the cluster now; ``result()`` of the handle waits for it."""
+        return _Pending(self.client.submit(fn, item, pure=False), lambda f: self.client.cancel([f]))
 
     def describe(self):
         where = self.address or "a LocalCluster"

@@ -169,19 +169,13 @@ class ChainStatistics:
 def chain_statistics(chains, ensemble):
     """Rank-normalised bulk ESS, tail ESS and R-hat of (C chains, S draws, D) grouped by ``ensemble`` (C,).
 
-    ArviZ's array functions (arviz-stats), the ones ``az.ess``/``az.rhat_nested`` call on a DataTree.
+    The numbers ArviZ's ``ess`` and ``rhat_nested`` give (:mod:`cpas_bayes.inference.rank_diagnostics`,
+    every parameter at once).
     """
-    from arviz_stats.base import array_stats
+    from cpas_bayes.inference.rank_diagnostics import chain_diagnostics
 
-    chains = np.asarray(chains, float)
-    ensemble = np.asarray(ensemble)
-    by_parameter = np.moveaxis(chains, -1, 0)           # (D, C, S): chain and draw axes last
-    ess_bulk = np.asarray(array_stats.ess(by_parameter, method="bulk"), float)
-    ess_tail = np.asarray(array_stats.ess(by_parameter, method="tail", prob=TAIL_QUANTILES), float)
-    if np.unique(ensemble).size > 1:
-        rhat = np.asarray(array_stats.rhat_nested(by_parameter, superchain_ids=ensemble), float)
-    else:
-        rhat = np.asarray(array_stats.rhat(by_parameter), float)
+    by_parameter = np.moveaxis(np.asarray(chains, float), -1, 0)           # (D, C, S): chain and draw axes last
+    ess_bulk, ess_tail, rhat = chain_diagnostics(by_parameter, np.asarray(ensemble), TAIL_QUANTILES)
     return ChainStatistics(ess_bulk=ess_bulk, ess_tail=ess_tail, rhat=rhat)
 
 

@@ -534,15 +534,19 @@ def _figure_task(job):
 def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None):
     """Write every figure of a fit into folder ``out``; return their paths.
 
-    ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given.
+    ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given; it may
+    also be a function of no arguments that returns them, called here while the executor's workers draw
+    the figures that need no checks (bands, loads, corners, trace), so that the two overlap.
     ``executor`` (:mod:`cpas_bayes.core.executor`) draws the figures in parallel, one task each (about
     1 s of matplotlib apiece); the figures do not depend on it: each has its own random stream.
     """
     from cpas_bayes.core.executor import Executor
 
+    executor = executor or Executor()
     out = claim_folder(out)
     rng = np.random.default_rng(rng)
-    checks = run_checks(fit, rng=rng) if checks is None else checks
+    if checks is None:
+        checks = run_checks(fit, rng=rng)
     pred = _band_draws(fit, n_draws, rng)
     groups = corner_groups(fit)
     streams = iter(rng.spawn(len(groups) + 1))
@@ -557,8 +561,11 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
                  "data pin the parameters; tilted ones show trade-offs")
         jobs.append(("corner", inside(out, f"corner_{pid}_s{k}.png"), (values, short, labels, title),
                      {"rng": next(streams)}))
-    jobs += [("trace", out / "trace.png", (fit, worst_rhat_parameters(fit)), {}),
-             ("ppc", out / "ppc.png", (checks.ppc,), {}),
-             ("loo_pit", out / "loo_pit.png", (checks.loo_pit,), {}),
-             ("residuals", out / "residuals.png", (checks.residuals,), {})]
-    return (executor or Executor()).map(_figure_task, jobs, desc="figures", progress=False)
+    jobs.append(("trace", out / "trace.png", (fit, worst_rhat_parameters(fit)), {}))
+    started = [executor.submit(_figure_task, job) for job in jobs]
+    checks = checks() if callable(checks) else checks
+    late = [("ppc", out / "ppc.png", (checks.ppc,), {}),
+            ("loo_pit", out / "loo_pit.png", (checks.loo_pit,), {}),
+            ("residuals", out / "residuals.png", (checks.residuals,), {})]
+    started += [executor.submit(_figure_task, job) for job in late]
+    return [task.result() for task in started]
