@@ -30,6 +30,7 @@ def test_the_documented_example_config_reads(tmp_path):
     ("[diagnose]\ncandidates = ['wake']\n", "diagnose.candidates"),
     ("[diagnose]\nmodel_forms = 'yes'\n", "diagnose.model_forms"),
     ("[montecarlo]\nruns = 'many'\n", "montecarlo.runs"),
+    ("[fit]\ncoordinates = 'drag_areas'\n", "fit.coordinates"),
 ])
 def test_a_bad_config_is_refused_naming_the_key(tmp_path, text, where):
     path = tmp_path / "c.toml"

@@ -140,3 +140,27 @@ def test_aligned_differential_evolution_is_exact_where_the_pairings_meet():
     draws = sampler.get_chain(discard=500, flat=True)
     np.testing.assert_allclose(draws.mean(axis=0), mean, atol=0.05)
     np.testing.assert_allclose(draws.std(axis=0), sd, rtol=0.06)
+
+
+def test_in_the_samplers_drag_area_coordinates_an_exchange_stays_exact_and_swaps_the_drag_areas(drogue_pair):
+    """The fit samples u (reefed drag areas R = eps·CDS_o in place of eps): each exchange carried into u is
+    still an involution, its Metropolis ratio is still the posterior ratio alone (unit Jacobian in u), and at
+    a reefed stage it is a plain swap of the two canopies' R."""
+    from cpas_bayes.inference.coordinates import SamplerTarget, sampling_coordinates
+
+    m = drogue_pair
+    coords = sampling_coordinates(m)
+    target = SamplerTarget(m, coords)
+    theta = _theta(m, np.random.default_rng(4))
+    u = coords.to_sampler(theta)
+    col = {n: i for i, n in enumerate(target.names)}
+    for e_theta, e_u in zip(m.exchanges(), target.exchanges()):
+        assert e_u.order == e_theta.order
+        swapped = e_u.apply(u)
+        np.testing.assert_allclose(e_u.apply(swapped), u, rtol=1e-12)
+        np.testing.assert_allclose(coords.to_model(swapped), e_theta.apply(theta), rtol=1e-12)
+        # the u-density ratio equals the θ-posterior ratio: the Jacobian terms cancel
+        np.testing.assert_allclose(target(swapped) - target(u), m(e_theta.apply(theta)) - m(theta), atol=1e-8)
+    reefed = target.exchanges()[0].apply(u)
+    np.testing.assert_allclose(reefed[:, col["D1.s1.cds_reefed"]], u[:, col["D2.s1.cds_reefed"]], rtol=1e-12)
+    np.testing.assert_allclose(reefed[:, col["D2.s1.cds_reefed"]], u[:, col["D1.s1.cds_reefed"]], rtol=1e-12)

@@ -499,6 +499,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
             fit_opts.update(fit_stop=config.fit_stop, fit_ess_target=config.fit_ess_target)
             if config.fit_proposal != "de":  # fits of DE alone, the only proposal before, keep their keys
                 fit_opts["fit_proposal"] = config.fit_proposal
+        if config.fit_coordinates != "model":   # fits sampled in θ as written, the only way before, keep their keys
+            fit_opts["fit_coordinates"] = config.fit_coordinates
         fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
         if config.diagnose != "off":
             diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))

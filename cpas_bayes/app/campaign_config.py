@@ -12,6 +12,7 @@ from pathlib import Path
 
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.inputs import did_you_mean, read_toml
+from cpas_bayes.inference.coordinates import COORDINATES
 from cpas_bayes.inference.fit import PROPOSALS, SamplerOptions
 from cpas_bayes.inference.stopping import ESS_TARGET, STOP_RULES
 from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
@@ -36,6 +37,7 @@ class CampaignConfig:
     fit_tau_factor: float = 50.0
     fit_check_every: int = 500
     fit_proposal: str = "adaptive"        # ESS rule: "adaptive" (independence move after a warm-up) or "de"
+    fit_coordinates: str = "model"        # where the walkers move: θ as written, or "drag_area" (reefed drag areas)
     workers: int = 2
     diagnose: str = "screen"              # "screen", "full" or "off"
     candidates: tuple = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
@@ -47,7 +49,8 @@ class CampaignConfig:
     def sampler(self) -> SamplerOptions:
         return SamplerOptions(seed=self.seed, n_ensembles=self.fit_ensembles, max_steps=self.fit_max_steps,
                               stop=self.fit_stop, ess_target=self.fit_ess_target, tau_factor=self.fit_tau_factor,
-                              check_every=self.fit_check_every, workers=self.workers, proposal=self.fit_proposal)
+                              check_every=self.fit_check_every, workers=self.workers, proposal=self.fit_proposal,
+                              coordinates=self.fit_coordinates)
 
 
 # TOML layout: top-level keys and tables mapping onto CampaignConfig fields.
@@ -56,7 +59,7 @@ _TOML_KEYS = {
          "workers": "workers"},
     ("fit",): {"ensembles": "fit_ensembles", "max_steps": "fit_max_steps", "stop": "fit_stop",
                "ess_target": "fit_ess_target", "tau_factor": "fit_tau_factor", "check_every": "fit_check_every",
-               "proposal": "fit_proposal"},
+               "proposal": "fit_proposal", "coordinates": "fit_coordinates"},
     ("diagnose",): {"mode": "diagnose", "candidates": "candidates", "model_forms": "model_forms"},
     ("montecarlo",): {"runs": "montecarlo_runs"},
     ("compare",): {"runs": "compare_runs"},
@@ -81,6 +84,7 @@ ess_target = 1000             # 100–100,000
 # tau_factor = 50             # only with stop = "tau"
 check_every = 500             # steps between convergence checks and checkpoints (10–10,000)
 proposal = "adaptive"         # with stop = "ess": an independence move fitted after a warm-up; "de": DE alone
+coordinates = "model"         # walkers move in θ as written; "drag_area": reefed drag areas ε·CDS_o in place of ε
 
 [diagnose]
 mode = "screen"               # "screen" (MAP screen, then sample), "full", "off"
@@ -148,6 +152,8 @@ def load_config(path) -> CampaignConfig:
             problem = f"{value!r:.40}{did_you_mean(str(value), DECAY_SHAPES)} is not one of {_quoted(DECAY_SHAPES)}"
         elif name == "fit_proposal" and value not in PROPOSALS:
             problem = f"{value!r:.40}{did_you_mean(str(value), PROPOSALS)} is not one of {_quoted(PROPOSALS)}"
+        elif name == "fit_coordinates" and value not in COORDINATES:
+            problem = f"{value!r:.40}{did_you_mean(str(value), COORDINATES)} is not one of {_quoted(COORDINATES)}"
         elif name == "fit_stop" and value not in STOP_RULES:
             problem = f"{value!r:.40}{did_you_mean(str(value), STOP_RULES)} is not one of {_quoted(STOP_RULES)}"
         elif name == "below_previous" and value not in BELOW_PREVIOUS_RULES:

@@ -27,6 +27,7 @@ from cpas_bayes.core.errors import InputError
 from cpas_bayes.app.campaign_config import CONFIG_EXAMPLE as CAMPAIGN_EXAMPLE
 from cpas_bayes.app.cli_runtime import on_interrupt, run_cli
 from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
+from cpas_bayes.inference.coordinates import COORDINATES
 from cpas_bayes.inference.fit import PROPOSALS
 from cpas_bayes.inference.stopping import ESS_TARGET
 from cpas_bayes.app.options import (BATCH, ENSEMBLES, ESS_TARGETS, RUNS, SEED, STOP, WORKERS, check_scheduler,
@@ -267,8 +268,11 @@ def synth_command(scenario, effect, magnitude, seed, out):
 @click.option("--proposal", type=click.Choice(PROPOSALS), default="adaptive", show_default=True,
               help="With --stop ess: 'adaptive' mixes in an independence move fitted to each ensemble's draws "
                    "after a warm-up (τ ~15× shorter); 'de' differential evolution alone.")
+@click.option("--coordinates", type=click.Choice(COORDINATES), default="model", show_default=True,
+              help="Where the walkers move: 'model' the parameters as written; 'drag_area' each reefed stage's "
+                   "drag area ε·CDS_o in place of its ratio ε (same posterior; measured no shorter τ, README).")
 def fit_command(bundle, out, seed, priors, decay, below_previous, workers, scheduler, ensembles, stop, ess_target,
-                proposal):
+                proposal, coordinates):
     """Posterior of every inflation parameter of one flight test (emcee).
 
     Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
@@ -287,7 +291,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     test = read_bundle(bundle)
     _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
-                             ess_target=ess_target or ESS_TARGET, proposal=proposal)
+                             ess_target=ess_target or ESS_TARGET, proposal=proposal, coordinates=coordinates)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}, "
                f"stage below previous: {below_previous}")
     model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous)

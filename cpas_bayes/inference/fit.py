@@ -25,6 +25,10 @@ Procedure
    (:func:`_schedule`): one DE chunk of warm-up, two adaptation chunks, then the
    proposal frozen, the warm-up dropped and the ESS rule run on the rest. The
    τ rule keeps DE alone (its 50 τ criterion is for one kernel from the start).
+   With ``SamplerOptions.coordinates="drag_area"`` the walkers move in
+   :mod:`cpas_bayes.inference.coordinates`' u (each reefed stage's drag area ε·CDS_o in place of ε, the
+   Jacobian in the density); the draws and their log density are mapped back to θ before anything else
+   reads them.
 4. When to stop (``SamplerOptions.stop``, :mod:`cpas_bayes.inference.stopping`):
    ``"ess"`` (the default) -- the ensembles advance in lockstep chunks (one
    task per ensemble and chunk, so the workers stay busy) and stop when every
@@ -48,8 +52,6 @@ Procedure
 
 from __future__ import annotations
 
-import hashlib
-import json
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -58,9 +60,9 @@ from pathlib import Path
 import emcee
 import numpy as np
 
-from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.files import atomic_path
 from cpas_bayes.core.interrupts import raise_if_requested
+from cpas_bayes.inference.coordinates import COORDINATES, SamplerTarget, sampling_coordinates
+from cpas_bayes.inference.ensemble_store import EnsembleStore, exchanges_of
 from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
 from cpas_bayes.inference.stopping import (ESS_TARGET, RHAT_TARGET, STOP_RULES, burn_and_thin, ess_check,
                                            integrated_time, pool_kept)
@@ -86,6 +88,7 @@ class SamplerOptions:
     ess_target: float = ESS_TARGET    # ESS rule: bulk and tail ESS of every parameter at least this ...
     rhat_target: float = RHAT_TARGET  # ... and its R-hat at most this
     proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (_schedule); "de" alone
+    coordinates: str = "model"        # where the walkers move (inference.coordinates): θ itself, or "drag_area"
     map_starts: int = 4
     workers: int = 2
     progress: bool = True
@@ -93,6 +96,8 @@ class SamplerOptions:
     def __post_init__(self):
         if self.stop not in STOP_RULES:
             raise ValueError(f"stop must be one of {', '.join(STOP_RULES)}, not {self.stop!r}")
+        if self.coordinates not in COORDINATES:
+            raise ValueError(f"coordinates must be one of {', '.join(COORDINATES)}, not {self.coordinates!r}")
         if self.proposal not in PROPOSALS:
             raise ValueError(f"proposal must be one of {', '.join(PROPOSALS)}, not {self.proposal!r}")
         if not self.ess_target > 0 or not self.rhat_target > 1:
@@ -139,12 +144,6 @@ class SamplingResult:
 # ensembles
 
 
-def _exchanges(model):
-    """The model's label exchanges (like canopies no channel tells apart); none for a bare log density."""
-    exchanges = getattr(model, "exchanges", None)
-    return exchanges() if exchanges is not None else []
-
-
 def _moves(proposal=None, exchanges=()):
     """Differential evolution (:mod:`cpas_bayes.inference.moves`), mixed with the adaptive independence
     move once a proposal is fitted, and with label exchanges when the model has any. The snooker variant,
@@ -153,126 +152,6 @@ def _moves(proposal=None, exchanges=()):
     from cpas_bayes.inference.moves import ensemble_moves
 
     return ensemble_moves(proposal, exchanges)
-
-
-def _fingerprint(model, init, options):
-    h = hashlib.sha256()
-    h.update(json.dumps(model.names).encode())
-    h.update(np.ascontiguousarray(init).tobytes())
-    key = [options.seed, options.store_every]
-    if options.proposal != "de" and options.stop == "ess":  # the adaptive chain depends on its chunks too
-        key += [options.proposal, options.check_every, "log θ for lognormal priors"]  # the proposal's coordinates
-    if _exchanges(model):   # the chain depends on the moves
-        key.append("label exchanges")
-    h.update(json.dumps(key).encode())
-    return h.hexdigest()[:16]
-
-
-class _EnsembleStore:
-    """An ensemble advanced chunk by chunk in memory, checkpointed after every chunk.
-
-    The checkpoint is written in emcee's HDF5 layout (readable with
-    ``emcee.backends.HDFBackend(path, read_only=True)``) once per chunk, to a
-    temporary file renamed over the old one: a kill leaves the last complete
-    chunk. Writing per chunk rather than per step (emcee's own HDF5 backend
-    opens the file at every step) keeps checkpointing under 1 % of the run.
-    On restart the walkers, log-probabilities, acceptance counts and emcee's
-    random state are restored, so the resumed chain equals an uninterrupted one.
-    """
-
-    def __init__(self, model, init, seed, options, checkpoint):
-        self.model, self.init, self.seed, self.options = model, init, seed, options
-        self.checkpoint = Path(checkpoint) if checkpoint else None
-        self.fingerprint = _fingerprint(model, init, options)
-        backend = emcee.backends.Backend()
-        if self.checkpoint and self.checkpoint.exists():
-            backend = self._load(backend)
-        n_walkers, ndim = init.shape
-        self.sampler = emcee.EnsembleSampler(n_walkers, ndim, model, vectorize=True, moves=_moves(),
-                                             backend=backend)
-        if backend.iteration == 0:
-            # emcee would start from numpy's global state; give it the ensemble's own instead
-            self.sampler.random_state = np.random.RandomState(self.seed).get_state()
-
-    def _load(self, backend):
-        import h5py
-
-        try:
-            with h5py.File(self.checkpoint, "r") as f:
-                if f.attrs.get("fingerprint") != self.fingerprint:
-                    raise InputError(self.checkpoint, "attribute 'fingerprint'",
-                                     "the checkpoint belongs to another model, data or seed",
-                                     "delete the checkpoint folder or fit into a new --out folder")
-                g = f["mcmc"]
-                backend.reset(int(g.attrs["nwalkers"]), int(g.attrs["ndim"]))
-                backend.chain = g["chain"][...]
-                backend.log_prob = g["log_prob"][...]
-                backend.accepted = g["accepted"][...]
-                backend.iteration = int(g.attrs["iteration"])
-                backend.random_state = tuple(v for k, v in sorted(g.attrs.items())
-                                             if k.startswith("random_state_"))
-        except (OSError, KeyError, ValueError, TypeError) as exc:  # truncated, garbage or incomplete file
-            raise InputError(self.checkpoint, "", f"not a readable checkpoint ({type(exc).__name__}: "
-                             f"{str(exc)[:120]})", f"delete {self.checkpoint} (that ensemble starts again) and "
-                             "re-run the same command") from None
-        return backend
-
-    def _save(self):
-        import h5py
-
-        b = self.sampler.backend
-        with atomic_path(self.checkpoint) as tmp:
-            with h5py.File(tmp, "w") as f:
-                f.attrs["fingerprint"] = self.fingerprint
-                f.attrs["parameters"] = json.dumps(self.model.names)
-                f.attrs["store_every"] = self.options.store_every
-                g = f.create_group("mcmc")
-                g.attrs.update({"version": emcee.__version__, "nwalkers": b.nwalkers, "ndim": b.ndim,
-                                "has_blobs": False, "iteration": b.iteration})
-                g.create_dataset("chain", data=b.chain[: b.iteration], maxshape=(None, b.nwalkers, b.ndim))
-                g.create_dataset("log_prob", data=b.log_prob[: b.iteration], maxshape=(None, b.nwalkers))
-                g.create_dataset("accepted", data=b.accepted)
-                for i, v in enumerate(b.random_state):
-                    g.attrs[f"random_state_{i}"] = v
-
-    def advance(self):
-        """Run one chunk; return (steps, chain (S, W, D), log_prob (S, W), acceptance)."""
-        backend = self.sampler.backend
-        first = backend.iteration == 0
-        self.sampler.run_mcmc(self.init if first else None, self.options.check_every // self.options.store_every,
-                              thin_by=self.options.store_every, progress=False)
-        if self.checkpoint:
-            self._save()
-        steps = backend.iteration * self.options.store_every
-        return steps, backend.get_chain(), backend.get_log_prob(), self.acceptance()
-
-    def acceptance(self):
-        backend = self.sampler.backend
-        # emcee adds one acceptance per stored step, not per thinned-away step
-        return float(np.mean(backend.accepted) / max(backend.iteration, 1))
-
-    @property
-    def stored(self):
-        """Stored steps so far."""
-        return self.sampler.backend.iteration
-
-    def next_state(self):
-        """(walkers, their log posterior or None, emcee's random state): where the next chunk starts."""
-        if self.stored == 0:
-            return self.init, None, np.random.RandomState(self.seed).get_state()
-        last = self.sampler.backend.get_last_sample()
-        return last.coords, last.log_prob, last.random_state
-
-    def append(self, chain, log_prob, accepted, random_state):
-        """Add a chunk run elsewhere (:func:`_chunk_task`) from :meth:`next_state`, and checkpoint."""
-        b = self.sampler.backend
-        b.chain = np.concatenate([b.chain[: b.iteration], chain])
-        b.log_prob = np.concatenate([b.log_prob[: b.iteration], log_prob])
-        b.accepted = b.accepted + accepted
-        b.iteration += chain.shape[0]
-        b.random_state = random_state
-        if self.checkpoint:
-            self._save()
 
 
 def _check(chain, steps, tau_prev, options):
@@ -313,7 +192,7 @@ def run_ensemble(model, init, seed, options: SamplerOptions, checkpoint=None, la
     from cpas_bayes.core.files import exclusive_writer
 
     with exclusive_writer(checkpoint or None):
-        store = _EnsembleStore(model, init, seed, options, checkpoint)
+        store = EnsembleStore(model, init, seed, options, checkpoint)
         tau_prev, stopped = _replay(store, options)
         while stopped is None:
             raise_if_requested()  # between chunks: the checkpoint is complete
@@ -368,9 +247,15 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
                  for e in range(options.n_ensembles)]
         ckpts = [Path(checkpoint_dir) / f"ensemble_{e}.h5" if checkpoint_dir else None
                  for e in range(options.n_ensembles)]
+        coords = sampling_coordinates(model, options.coordinates)
+        target = SamplerTarget(model, coords) if coords else model
         started = time.perf_counter()
-        runs, stopping = run_ensembles(model, inits, seeds, options, ckpts, executor)
+        runs, stopping = run_ensembles(target, [coords.to_sampler(i) for i in inits] if coords else inits, seeds,
+                                       options, ckpts, executor)
         seconds = time.perf_counter() - started
+        for run in runs if coords else ():   # back to θ: the draws and their log density
+            run.log_prob = run.log_prob - coords.log_jacobian(run.draws)
+            run.draws = coords.to_model(run.draws)
     finally:
         if own:
             executor.close()
@@ -411,7 +296,7 @@ def _chunk_task(job):
     proposal, if any, is fixed for the chunk).
     """
     model, (coords, log_prob, random_state), n_stored, store_every, proposal = job
-    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves(proposal, _exchanges(model)))
+    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves(proposal, exchanges_of(model)))
     sampler.run_mcmc(emcee.State(coords, log_prob=log_prob, random_state=random_state), n_stored,
                      thin_by=store_every, progress=False)
     b = sampler.backend
@@ -463,13 +348,13 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
 
     from cpas_bayes.core.files import exclusive_writer
 
-    if _exchanges(model):   # DE and exchanges only (ensemble_moves): no proposal to adapt, no warm-up to drop
+    if exchanges_of(model):   # DE and exchanges only (ensemble_moves): no proposal to adapt, no warm-up to drop
         options = replace(options, proposal="de")
     ends, warm, windows = _schedule(options)
     with ExitStack() as held:
         for ckpt in ckpts:
             held.enter_context(exclusive_writer(ckpt or None))
-        stores = [_EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
+        stores = [EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
         proposals = [None] * len(stores)
         k, start, tau_prev = 0, 0, None
         while True:
