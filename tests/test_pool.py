@@ -567,3 +567,30 @@ def test_population_is_recovered_from_real_fits_of_a_synthetic_campaign(tmp_path
     out = tmp_path / "memo"
     assert main(["pool", *map(str, folders), "--out", str(out)]) == 0
     assert load_memo(out).entry("drogue", "first", "n_p").n_tests == 8
+
+
+def test_a_composite_fit_is_pooled_as_one_canopy_per_group(tmp_path):
+    """In the composite form a cluster's like canopies share one set of parameters, and each member's
+    variables repeat the group's draws: the pool takes the group once per test (not zero times, as when it
+    looked for the members' own priors, nor twice)."""
+    from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
+    from cpas_bayes.data.reduction import reduce_test
+    from cpas_bayes.inference.fit import prepare_model
+
+    test = read_bundle(EXAMPLES_DIR / "drogue-clean")
+    model = prepare_model(test, reduce_test(test), cluster="composite")
+    rng = np.random.default_rng(11)
+    records = [load_fit(write_fit_folder(tmp_path / f"fit{i}", model, rng, f"EX-c{i}", seed=20 + i))
+               for i in range(3)]
+    assert records[0].parameter_prefix("D3") == records[0].parameter_prefix("D6") == "cluster.drogue"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PoolWarning)
+        result = pool_fits(records, np.random.default_rng(2), n_draws=2000, correlate=False, families=["normal"])
+    for key in (("drogue", "parachute", "cd_o"), ("drogue", "first", "n_p"), ("drogue", "first", "n"),
+                ("drogue", "first", "eps"), ("drogue", "full_open", "expopen")):
+        table = result.entries[key].per_canopy
+        assert len(table) == 3, key
+    area = math.pi / 4 * records[0].summary["parachutes"]["D3"]["diameter_m"] ** 2
+    medians = sorted(np.median(r.draws["cluster.drogue.cds_o"]) / area for r in records)
+    np.testing.assert_allclose(sorted(result.entries[("drogue", "parachute", "cd_o")].per_canopy["median"]),
+                               medians, rtol=1e-3)

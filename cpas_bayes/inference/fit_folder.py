@@ -120,6 +120,11 @@ class FitRecord:
                         [s["key"] for s in info["stages"]]))
         return out
 
+    def parameter_prefix(self, pid):
+        """The prefix of parachute ``pid``'s sampled parameters: its id, or in a composite fit its group's
+        (``cluster.<kind>``), whose draws every member's variables repeat."""
+        return self.summary["parachutes"][pid].get("parameters", pid)
+
 
 def load_fit(folder) -> FitRecord:
     """Read a fit folder written by ``cpas-bayes fit``; refuse clearly if it is not one or is damaged."""
@@ -374,7 +379,7 @@ def build_summary(model, tree, diagnostics, options, ppc_table=None):
         return quantile_summary(post[name].values, QUANTILES) if name in post else None
 
     chutes = {}
-    for p in model.parachutes:
+    for i, p in enumerate(model.parachutes):
         n = len(p.stages)
         stages = []
         for k, st in enumerate(p.stages):
@@ -386,6 +391,9 @@ def build_summary(model, tree, diagnostics, options, ppc_table=None):
             stages.append(entry)
         chutes[p.id] = {"kind": p.kind, "inflation": p.inflation, "diameter_m": p.diameter,
                         "cds_o": stats(f"{p.id}.cds_o"), "stages": stages}
+        prefix = model.chute_prefix[i] if hasattr(model, "chute_prefix") else p.id
+        if prefix != p.id:   # composite: the parameters are the group's (the pool takes them once)
+            chutes[p.id]["parameters"] = prefix
     nuisance = {prm.name: stats(prm.name) for prm in model.parameters if prm.group != "inflation"}
     diag = {k: v for k, v in diagnostics.items() if k != "per_parameter"}
     return {

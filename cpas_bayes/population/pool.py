@@ -248,8 +248,16 @@ def _gather(records, rng, max_samples):
         n = min(v.size for v in r.draws.values())
         pick = np.sort(rng.choice(n, size=s_common, replace=False)) if n > s_common else np.arange(n)
         where = r.source_file(POSTERIOR_NAME)
+        seen = set()
         for pid, kind, _inflation, diameter, keys in r.parachutes():
             area = math.pi / 4 * float(diameter) ** 2
+            # a composite fit's group is one canopy of the population, pooled once (its members' variables
+            # repeat the group's draws); derived quantities (n, t_fp) keep the member's name
+            prefix = r.parameter_prefix(pid)
+            if prefix in seen:
+                continue
+            seen.add(prefix)
+            label = pid if prefix == pid else prefix
 
             def add(stage, param, full, log_prior_full, prior, support, name):
                 if not np.all(np.isfinite(full)):
@@ -258,19 +266,19 @@ def _gather(records, rng, max_samples):
                     raise InputError(where, f"variable '{name}'", "posterior draws outside the fit's prior support",
                                      "rerun the fit with this version of cpas_bayes (summary.json priors must be "
                                      "those the fit used)")
-                unit = _Unit(r.test, pid, full[pick], log_prior_full[pick], full, prior, support)
+                unit = _Unit(r.test, label, full[pick], log_prior_full[pick], full, prior, support)
                 groups.setdefault((kind, stage, param), {}).setdefault(r.test, []).append(unit)
 
-            name = f"{pid}.cds_o"
+            name = f"{prefix}.cds_o"
             if name in r.draws and name in r.priors:
                 prior = r.priors[name].scaled(1.0 / area)
                 cd = r.draws[name] / area
                 add(PARACHUTE_STAGE, "cd_o", cd, r.priors[name].logpdf(cd * area) + math.log(area), prior,
                     prior.support, name)
             for k, key in enumerate(keys):
-                pre = f"{pid}.s{k + 1}"
+                pre, own = f"{prefix}.s{k + 1}", f"{pid}.s{k + 1}"
                 for param in POOLED_PARAMETERS:
-                    name = f"{pre}.{param}"
+                    name = f"{own if param == 'n' else pre}.{param}"
                     if name not in r.draws:
                         continue
                     if param == "n":
@@ -287,9 +295,9 @@ def _gather(records, rng, max_samples):
                     elif name in r.priors:
                         prior = r.priors[name]
                         add(key, param, r.draws[name], prior.logpdf(r.draws[name]), prior, prior.support, name)
-                t_name = f"{pre}.t_fp"
+                t_name = f"{own}.t_fp"
                 if t_name in r.draws:
-                    tfp.setdefault((kind, key), []).append((r.test, pid, r.draws[t_name]))
+                    tfp.setdefault((kind, key), []).append((r.test, label, r.draws[t_name]))
     return groups, tfp
 
 
