@@ -375,3 +375,24 @@ def test_examples_fill_constants_match_truth(example_run):
     _, truth_doc, r = example_run
     for j, chute in enumerate(truth_doc["chutes"]):
         np.testing.assert_allclose(r.timing.n[0, j], [s["n"] for s in chute["stages"]], rtol=1e-3)
+
+
+def test_added_mass_and_its_rate_together_equal_the_two_formulas():
+    """The likelihood's fused form (one power of the area ratio) gives Eq. A1' and its rate as
+    ``added_mass`` and ``added_mass_rate`` do, at every exponent the prior allows and at a zero area."""
+    from cpas_bayes.physics.effects import added_mass, added_mass_and_rate, added_mass_rate
+
+    rng = np.random.default_rng(5)
+    shape = (6, 3, 40)
+    cds = rng.uniform(0.0, 80.0, shape)
+    cds[:, :, :5] = 0.0                               # before a stage starts
+    cds_rate = rng.normal(0.0, 50.0, shape)
+    rho = rng.uniform(0.4, 1.2, (1, 1, 40))
+    rho_rate = rng.normal(0.0, 1e-3, (1, 1, 40))
+    k_a = rng.uniform(0.0, 1.0, (6, 1, 1))
+    exponent = np.array([1.0, 1.2, 1.5, 1.5, 2.0, 2.25])[:, None, None]
+    cds_o = rng.uniform(50.0, 90.0, (6, 3, 1))
+    mass, rate = added_mass_and_rate(cds, cds_rate, rho, rho_rate, k_a, exponent, cds_o)
+    np.testing.assert_allclose(mass, added_mass(cds, rho, k_a, exponent, cds_o), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(rate, added_mass_rate(cds, cds_rate, rho, rho_rate, k_a, exponent, cds_o),
+                               rtol=1e-12, atol=1e-300)

@@ -113,6 +113,25 @@ def added_mass_rate(cds, cds_rate, density, density_rate, k_a, exponent=ADDED_MA
         + exponent * np.asarray(density, float) * ratio**(exponent - 1.0) * np.asarray(cds_rate, float) / reference)
 
 
+def added_mass_and_rate(cds, cds_rate, density, density_rate, k_a, exponent, reference_cds):
+    """(m_a, dm_a/dt) of Eq. A1' together, as :func:`added_mass` and :func:`added_mass_rate` give them,
+    with one power of the area ratio for both ((CDS/CDS_o)^p = (CDS/CDS_o)^(p−1)·CDS/CDS_o): the
+    likelihood of the added-mass term calls this for every walker, parachute and time node."""
+    cds = np.clip(np.asarray(cds, float), 0.0, None)
+    reference = _reference_area(reference_cds)
+    ratio = cds / reference
+    scale = np.asarray(k_a, float) * reference**ADDED_MASS_EXPONENT
+    exponent = np.asarray(exponent, float)
+    with np.errstate(divide="ignore"):
+        lower = ratio**(exponent - 1.0)           # as added_mass_rate's, inf at a zero area if p < 1
+    powered = np.where(ratio > 0, lower * ratio, 0.0)   # (CDS/CDS_o)^p, 0 at a zero area (p > 0)
+    density = np.asarray(density, float)
+    mass = scale * density * powered
+    rate = scale * (np.asarray(density_rate, float) * powered
+                    + exponent * density * lower * np.asarray(cds_rate, float) / reference)
+    return mass, rate
+
+
 def _reference_area(reference_cds):
     if reference_cds is None:
         raise ValueError("an added-mass exponent other than 3/2 needs reference_cds (CDS_o)")

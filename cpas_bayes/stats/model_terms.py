@@ -55,7 +55,7 @@ import math
 
 import numpy as np
 
-from cpas_bayes.physics.effects import (added_mass, added_mass_acceleration, added_mass_momentum_rate, added_mass_rate,
+from cpas_bayes.physics.effects import (added_mass_acceleration, added_mass_and_rate, added_mass_momentum_rate,
                                         breathing_factor, lagged_mass_rate)
 from cpas_bayes.stats.discrepancy import Discrepancy
 from cpas_bayes.stats.model_parts import Extension, Parameter
@@ -98,9 +98,9 @@ class AddedMass(Extension):
         cds = 0.5 * (cds_plus + cds_minus)
         cds_rate = (cds_plus - cds_minus) / (2 * _DERIVATIVE_STEP)
         rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
-        target = added_mass(cds, rho, k_a, exponent, cds_o)
-        target_rate = added_mass_rate(cds, cds_rate, rho, np.interp(tt, obs.native_time, self._density_rate),
-                                      k_a, exponent, cds_o)
+        target, target_rate = added_mass_and_rate(cds, cds_rate, rho,
+                                                  np.interp(tt, obs.native_time, self._density_rate), k_a,
+                                                  exponent, cds_o)
         lag_error = lagged_mass_rate(target_rate, tt, v["mass_lag"])
         mass = target + v["mass_lag"][:, None, None] * lag_error
         rate = -lag_error
