@@ -85,10 +85,6 @@ class SamplerTarget:
         self.names = coords.names
 
     @property
-    def ndim(self):
-        return len(self.names)
-
-    @property
     def log_scale(self):
         return getattr(self.model, "log_scale", None)
 

@@ -149,7 +149,8 @@ def _classic(z):
 
 def rhat_nested(x, superchain, z_split=None):
     """Rank-normalised nested R-hat per parameter of (D, C, S) draws grouped by ``superchain`` (C,):
-    the larger of the bulk and folded values (one superchain: the plain rank R-hat). ``z_split``: the rank-normalised split chains, if known."""
+    the larger of the bulk and folded values (one superchain: the plain rank R-hat). ``z_split``: the
+    rank-normalised split chains, if known."""
     x = np.asarray(x, float)
     superchain = np.asarray(superchain)
     if x.shape[-1] < 4 or x.shape[1] < 2:
