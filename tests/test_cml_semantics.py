@@ -207,6 +207,22 @@ def test_compiled_drag_area_kernel_equals_numpy_reference(decay, below_previous,
         np.testing.assert_array_equal(ref_timing.t_fp, ref_timing.t_f)
 
 
+@pytest.mark.parametrize("decay", ["linear", "exponential"])
+def test_compiled_drag_area_kernel_gives_the_same_values_for_times_in_any_order(decay):
+    # Ascending times take the kernel's path that visits each stage's own bins only; others the full scan.
+    args = _random_cluster_stages(np.random.default_rng(32))
+    t = np.linspace(0.0, 20.0, 2001)
+    order = np.random.default_rng(33).permutation(t.size)
+    ascending, _ = cluster_drag_area(t, decay=decay, **args)
+    shuffled, _ = cluster_drag_area(t[order], decay=decay, **args)
+    np.testing.assert_array_equal(shuffled, ascending[..., order])
+    per_row = np.repeat(t[None, :], args["start"].shape[0], axis=0)
+    per_row[1] = per_row[1, order]          # one time base per row, one of them unsorted
+    rows, _ = cluster_drag_area(per_row, decay=decay, **args)
+    np.testing.assert_array_equal(rows[1], ascending[1][..., order])
+    np.testing.assert_array_equal(rows[0], ascending[0])
+
+
 # A Drogue-like pair, stage 2 of canopy 0 below what stage 1 holds (SI).
 STATE0 = VehicleState0(125.0, np.radians(-47.0), 7000.0)
 VEHICLE = VehicleProperties(89_000.0, 1.6)

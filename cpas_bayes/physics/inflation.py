@@ -380,7 +380,8 @@ def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, c
 
 @numba.njit(cache=True)
 def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
-                      n_stages, decay, below_previous, fill_is_np, out, t_f_out, t_fp_out, n_out, held_out):
+                      n_stages, decay, below_previous, fill_is_np, t_sorted, out, t_f_out, t_fp_out, n_out,
+                      held_out):
     B, P = start.shape[:2]
     per_walker_time = t.shape[0] > 1
     for b in range(B):
@@ -388,7 +389,7 @@ def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
         for p in range(P):
             parachute_stage_law(t[tb], start[b, p], cds_stage[b, p], cds_o[b, p], diameter[p], n_fill[b, p],
                                 expopen[b, p], ck[b, p], t_k[b, p], v_start[b, p], n_stages[p], decay,
-                                below_previous, fill_is_np, False, out[b, p], t_f_out[b, p], t_fp_out[b, p],
+                                below_previous, fill_is_np, t_sorted, out[b, p], t_f_out[b, p], t_fp_out[b, p],
                                 n_out[b, p], held_out[b, p])
 
 
@@ -412,8 +413,10 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     n_stages = np.full(P, K, dtype=np.int64) if n_stages is None else np.asarray(n_stages, dtype=np.int64)
     out = np.zeros((B, P, t2.shape[1]))
     fields = [np.zeros((B, P, K)) for _ in range(4)]
+    # Ascending times (every caller's but a user's own) let each stage visit only its own bins.
+    t_sorted = bool(np.all(t2[:, 1:] >= t2[:, :-1]))
     _drag_area_kernel(t2, start, stage[0], cds_o, diameter, *stage[1:], n_stages, *codes,
-                      fill_constant == "n_p", out, *fields)
+                      fill_constant == "n_p", t_sorted, out, *fields)
     t_f, t_fp, n, held = fields
     if fill_constant == "n_p":
         n_p = stage[1]
