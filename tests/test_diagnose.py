@@ -240,6 +240,87 @@ def test_load_cell_terms_do_not_apply_without_load_cells():
     assert all(applies(n, test) for n in EXTENSIONS)
 
 
+def test_a_screen_also_starts_with_the_new_term_typical_and_the_discrepancy_off():
+    # From the reference's MAP the discrepancy holds the misfit and a search keeps it there; the extra
+    # start restarts the discrepancy at its first (off) point and the new term at its last (typical) one.
+    test, _ = synthesize("drogue", "none", 1)
+    reduction = reduce_test(test)
+    options = cf.DiagnoseOptions()
+    reference_model = cf._model_for("discrepancy", test, reduction, options, None)
+    theta_ref = np.array([p.prior.ppf(0.6) for p in reference_model.parameters])
+    theta_ref[reference_model.index["discrepancy_log_scale"]] = 0.5          # on
+    reference = SimpleNamespace(fit=SimpleNamespace(model=reference_model,
+                                                    sampling=SimpleNamespace(theta_map=theta_ref)))
+    model = cf._model_for("added_mass+discrepancy", test, reduction, options, None)
+    term = next(e for e in model.extensions if e.name == "added_mass")
+    disc = next(e for e in model.extensions if e.name == "discrepancy")
+    plain = cf.start_guesses(model, reference)
+    assert len(plain) == len(term.start_points(model))            # the reference's discrepancy kept, on
+    assert all(row[model.index["discrepancy_log_scale"]] == 0.5 for row in plain)
+    [off] = cf.start_guesses(model, reference, points={"added_mass": term.start_points(model)[-1:],
+                                                       "discrepancy": disc.start_points(model)[:1]})
+    assert off[model.index["discrepancy_log_scale"]] == disc.start_points(model)[0]["discrepancy_log_scale"]
+    for name, value in term.start_points(model)[-1].items():
+        assert off[model.index[name]] == value
+    shared = [n for n in reference_model.names if n != "discrepancy_log_scale"]
+    np.testing.assert_allclose([off[model.index[n]] for n in shared],
+                               [np.clip(theta_ref[reference_model.index[n]], *_inner(model, n)) for n in shared])
+
+
+@pytest.mark.parametrize("share, mode, sampled", [(0.6, "full", True), (0.4, "full", False), (0.6, "screen", False),
+                                                   (1.1, "screen", True)])
+def test_a_screen_samples_a_term_whose_map_size_reaches_half_its_floor_in_full_mode(monkeypatch, share, mode,
+                                                                                    sampled):
+    # The naming rule reads the posterior median against the floor: a MAP far below it is not worth sampling.
+    test, _ = synthesize("drogue", "none", 1)
+    reduction = reduce_test(test)
+    reference_model = cf._model_for("discrepancy", test, reduction, cf.DiagnoseOptions(), None)
+    theta_ref = np.array([p.prior.ppf(0.5) for p in reference_model.parameters])
+    reference = SimpleNamespace(fit=SimpleNamespace(model=reference_model, sampling=SimpleNamespace(
+        theta_map=theta_ref, log_post_map=-100.0)))
+    param, floor = cf.make_extension("sensor_lag").practical_floor
+
+    def found(model, rng, starts, guesses):   # the search's optimum: the term at share × floor, +20 in log p
+        theta = np.array(guesses[0], float)
+        theta[model.index[param]] = share * floor
+        return theta, -80.0
+
+    monkeypatch.setattr(cf, "find_map", found)
+    result = cf.screen_candidate("sensor_lag+discrepancy", test, reduction, cf.DiagnoseOptions(mode=mode), reference,
+                                 term="sensor_lag")
+    assert result.map_gain == pytest.approx(20.0)
+    assert result.passed is sampled
+
+
+def test_a_candidate_fit_searches_from_given_optima_alone_and_jitters_only_new_terms(monkeypatch):
+    # A screen's MAP searched from every start point: a jittered copy would cost a whole search.
+    test, _ = synthesize("drogue", "none", 1)
+    reduction = reduce_test(test)
+    options = cf.DiagnoseOptions()
+    seen = []
+
+    def fake_fit(model, sampler, echo=None, guesses=None, executor=None):
+        seen.append((sampler.map_starts, len(guesses)))
+        return SimpleNamespace(model=model, tree=None, sampling=SimpleNamespace(theta_map=np.asarray(guesses[0])))
+
+    monkeypatch.setattr(cf, "fit_model", fake_fit)
+    monkeypatch.setattr(cf, "psis_loo", lambda tree: None)
+    base_model = prepare_model(test, reduction)
+    baseline = SimpleNamespace(fit=SimpleNamespace(model=base_model, sampling=SimpleNamespace(
+        theta_map=np.array([p.prior.ppf(0.5) for p in base_model.parameters]))))
+    named = cf.fit_candidate("friction_drift", test, reduction, options, reference=baseline, baseline=baseline)
+    cf.fit_candidate("friction_drift", test, reduction, options, reference=baseline, baseline=baseline,
+                     guesses=[named.fit.sampling.theta_map])
+    cf.fit_candidate("friction_drift", test, reduction, options, reference=named, baseline=baseline)
+    jitter = options.sampler.map_starts
+    assert seen == [(max(1, jitter), 1), (1, 1), (1, 1)]
+
+
+def _inner(model, name):
+    prior = model.parameters[model.index[name]].prior
+    return prior.ppf(1e-3), prior.ppf(1 - 1e-3)
+
+
 # -- the breathing frequency guess ---------------------------------------------
 
 
