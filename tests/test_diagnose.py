@@ -151,6 +151,20 @@ def _two_ensemble_fit(loglik_shift, rhat, bins=300):
             cf.CandidateFit(name="r", fit=None, loo=cf.psis_loo(ref_tree), seconds=0.0))
 
 
+@pytest.mark.parametrize("term_rhat, settled", [(1.03, True), (1.08, False)])
+def test_a_slow_inflation_law_does_not_unsettle_a_comparison_the_terms_parameters_settle(term_rhat, settled):
+    """The verdict reads the gain and the term's (and discrepancy's) parameters: a disreef stage drifting
+    slowly (R-hat 1.2) does not block naming when those are within 1.05 and the ensembles agree."""
+    cand, ref = _two_ensemble_fit(0.0, 1.2)
+    params = [SimpleNamespace(name="M1.s2.n_p", group="inflation"), SimpleNamespace(name="k_a", group="added_mass"),
+              SimpleNamespace(name="discrepancy_log_scale", group="discrepancy")]
+    rhats = {"M1.s2.n_p": 1.2, "k_a": term_rhat, "discrepancy_log_scale": 1.01}
+    cand.fit.model = SimpleNamespace(parameters=params)
+    cand.fit.summary["diagnostics_per_parameter"] = {n: {"rhat": r, "ess_bulk": 800.0} for n, r in rhats.items()}
+    assert rule.comparison_settled(cand, ref, se=5.0)[0] is False            # all parameters asked: 1.2
+    assert rule.comparison_settled(cand, ref, se=5.0, term="added_mass")[0] is settled
+
+
 @pytest.mark.parametrize("shift,rhat,settled", [(0.0, 1.03, True), (0.05, 1.03, False), (0.0, 1.08, False)])
 def test_a_fit_short_of_rhat_settles_the_comparison_when_its_ensembles_agree_on_the_gain(shift, rhat, settled):
     """Each ensemble alone gives the gain (0.2 per bin × 300 = 60, the second + 300·shift); settled when they

@@ -23,10 +23,12 @@ T may be named when
   of the right physics may beat it by less than 2 se on the bins while
   explaining nearly all of it; a stand-in leaves most of it in place;
 * its fit converged: nested R-hat ≤ 1.01 and bulk ESS ≥ 400 (:func:`fit_converged`) —
-  or R-hat ≤ 1.05 and bulk ESS ≥ 400 with the gains its ensembles give one by
+  or, for the parameters the verdict reads (the term's and the discrepancy's),
+  R-hat ≤ 1.05 and bulk ESS ≥ 400 with the gains its ensembles give one by
   one within the comparison's se of each other (:func:`comparison_settled`:
-  the verdict needs the gain, and more sampling could move it by less than the
-  data's own uncertainty about it);
+  the verdict needs the gain and those parameters, and more sampling could move
+  the gain by less than the data's own uncertainty about it; the inflation
+  law's own parameters may still drift slowly);
 * its fitted size is beyond the term's practical floor (``Extension.practical_floor``);
 * no parameter of T sits at the edge of its prior: the posterior's 5 % or
   95 % quantile beyond the prior's 0.5 % or 99.5 % point (a stand-in that
@@ -88,7 +90,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from cpas_bayes.inference.candidate_fits import BASELINE, CandidateFit, DiagnoseOptions, psis_loo
+from cpas_bayes.inference.candidate_fits import BASELINE, DISCREPANCY, CandidateFit, DiagnoseOptions, psis_loo
 from cpas_bayes.inference.fit_health import ESS_MIN, RHAT_MAX
 from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
 
@@ -135,13 +137,25 @@ def ensemble_gains(candidate: CandidateFit, reference: CandidateFit):
     return gains
 
 
-def comparison_settled(candidate: CandidateFit, reference: CandidateFit, se):
+def comparison_settled(candidate: CandidateFit, reference: CandidateFit, se, term=None):
     """Whether a fit short of R-hat 1.01 still settles the comparison: bulk ESS ≥ 400, R-hat ≤ 1.05
     and the gains its ensembles give one by one within ``se`` (the comparison's own standard error
     from the data) of each other — more sampling could then move the gain by less than the data's
-    uncertainty about it. Returns (settled, the per-ensemble gains)."""
+    uncertainty about it. Returns (settled, the per-ensemble gains).
+
+    With ``term``, the R-hat and ESS asked are those of the parameters the verdict reads — the term's
+    (its size, its edges) and the discrepancy's (the share it takes over) — not of the inflation law's:
+    on a Main with added mass the disreef stages' start, n_p and expopen drift together slowly (R-hat
+    1.16–1.24 after 6,000 steps, ensemble means 0.8 sd apart) while both ensembles agree on k_a to
+    0.1 sd and on the gain."""
     d = candidate.fit.summary["diagnostics"]
-    if not (d["ess_bulk_min"] >= ESS_MIN and d["rhat_max"] <= RHAT_LOOSE):
+    rhat, ess = d["rhat_max"], d["ess_bulk_min"]
+    per = candidate.fit.summary.get("diagnostics_per_parameter")
+    if term is not None and per:
+        read = [p.name for p in candidate.fit.model.parameters if p.group in (term, DISCREPANCY)]
+        rhat = max(per[n]["rhat"] for n in read)
+        ess = min(per[n]["ess_bulk"] for n in read)
+    if not (ess >= ESS_MIN and rhat <= RHAT_LOOSE):
         return False, []
     gains = ensemble_gains(candidate, reference)
     return bool(max(gains) - min(gains) <= se), gains
@@ -252,7 +266,7 @@ def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: 
     converged = fit_converged(candidate.fit)
     settled, per_ensemble = (False, [])
     if not converged:
-        settled, per_ensemble = comparison_settled(candidate, reference, se)
+        settled, per_ensemble = comparison_settled(candidate, reference, se, term)
     health = parameter_health(candidate, term)
     size = next((h["median"] for h in health.values() if h["is_size"]), None)
     floor = make_extension(term).practical_floor
@@ -280,7 +294,8 @@ def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: 
     rhat, ess = (candidate.fit.summary['diagnostics'][k] for k in ("rhat_max", "ess_bulk_min"))
     spread = f"; its ensembles give {', '.join(f'{g:.1f}' for g in per_ensemble)}" if per_ensemble else ""
     if settled:
-        r.append(f"the fit of {candidate.name} is short of R-hat 1.01 ({rhat:.3f}) but its ensembles agree on the "
+        r.append(f"the fit of {candidate.name} is short of R-hat 1.01 ({rhat:.3f}) but the parameters the verdict "
+                 f"reads (the term's and the discrepancy's) are within {RHAT_LOOSE} and its ensembles agree on the "
                  f"gain within its se{spread}")
     elif not converged:
         r.append(f"the fit of {candidate.name} did not converge (R-hat {rhat:.3f}, bulk ESS {ess:.0f}{spread}): "
