@@ -189,7 +189,8 @@ def start_guesses(model, reference, points=None):
     transform is singular, and the new term's parameters would not move."""
     base = dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))
     points = points or {}
-    new = [e for e in model.extensions if e in _new_terms(model, reference) or e.name in points]
+    lacking = {e.name for e in _new_terms(model, reference)}
+    new = [e for e in model.extensions if e.name in lacking or e.name in points]
     rows = []
     for combo in itertools.product(*[points.get(e.name, e.start_points(model)) for e in new]) if new else [()]:
         point = {k: v for d in combo for k, v in d.items()}
@@ -225,9 +226,10 @@ def fit_candidate(label, test, reduction, options: DiagnoseOptions, reference=No
         # every term of the model (its MAP is this model's but for the terms dropped) are searched from
         # alone: a jittered copy would cost a whole search (20–60 s on a Main with added mass) to find
         # the same optimum. From a reference that lacks terms, the jittered starts stay.
-        settled = guesses is not None or not _new_terms(model, reference if reference is not None else baseline)
+        reference = reference if reference is not None else baseline
+        settled = guesses is not None or not _new_terms(model, reference)
         if guesses is None:
-            guesses = start_guesses(model, reference if reference is not None else baseline)
+            guesses = start_guesses(model, reference)
         starts = len(guesses) if settled else max(len(guesses), sampler.map_starts)
         fit = fit_model(model, replace(sampler, map_starts=starts), echo=echo, guesses=guesses, executor=executor)
     return CandidateFit(name=label, fit=fit, loo=psis_loo(fit.tree), seconds=_time.perf_counter() - started)
@@ -277,13 +279,14 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
     started = _time.perf_counter()
     model = _model_for(label, test, reduction, options, baseline if baseline is not None else reference)
     guesses = start_guesses(model, reference)
-    if any(e.name == DISCREPANCY for e in model.extensions):
+    discrepancy = next((e for e in model.extensions if e.name == DISCREPANCY), None)
+    if discrepancy is not None:
         # Also with the new term at a typical size (its last start point) and the discrepancy off (its
         # first): from the reference's MAP the discrepancy already holds the misfit, and every search
         # keeps it there with the term small — a Main's added mass stopped at k_a 0.07 (log p 330
         # short) against 0.19 from this start, where the discrepancy switches itself off.
         points = {e.name: e.start_points(model)[-1:] for e in _new_terms(model, reference)}
-        points[DISCREPANCY] = next(e for e in model.extensions if e.name == DISCREPANCY).start_points(model)[:1]
+        points[DISCREPANCY] = discrepancy.start_points(model)[:1]
         guesses += start_guesses(model, reference, points=points)
     rng = np.random.default_rng([options.seed, candidate_seed_index(label), 3])
     theta, log_post = find_map(model, rng, max(len(guesses), options.sampler.map_starts), guesses)
