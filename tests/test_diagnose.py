@@ -21,6 +21,7 @@ import xarray as xr
 from cpas_bayes.inference import candidate_fits as cf
 from cpas_bayes.inference import diagnose as dg
 from cpas_bayes.inference import diagnosis_rule as rule
+from cpas_bayes.inference import fit as cf_fit
 from cpas_bayes.app.cli import main
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.inference.fit import prepare_model
@@ -279,6 +280,58 @@ def test_a_screen_also_starts_with_the_new_term_typical_and_the_discrepancy_off(
     shared = [n for n in reference_model.names if n != "discrepancy_log_scale"]
     np.testing.assert_allclose([off[model.index[n]] for n in shared],
                                [np.clip(theta_ref[reference_model.index[n]], *_inner(model, n)) for n in shared])
+
+
+@pytest.mark.parametrize("term", ["friction_drift", "added_mass"])
+def test_a_screen_split_in_parts_searches_every_start_once_and_keeps_the_best(monkeypatch, term):
+    # The two groups of starts run as separate tasks; together they are the whole screen's starts, and
+    # the off group runs even when the reference's starts agree with each other.
+    test, _ = synthesize("drogue", "none", 1)
+    reduction = reduce_test(test)
+    options = cf.DiagnoseOptions()
+    reference_model = cf._model_for("discrepancy", test, reduction, options, None)
+    theta_ref = np.array([p.prior.ppf(0.5) for p in reference_model.parameters])
+    theta_ref[reference_model.index["discrepancy_log_scale"]] = 0.5          # on
+    reference = SimpleNamespace(fit=SimpleNamespace(model=reference_model, sampling=SimpleNamespace(
+        theta_map=theta_ref, log_post_map=-100.0)))
+    calls = {}
+
+    def found(model, rng, starts, guesses):   # each start its own optimum: the off start's wins by 30 in log p
+        off = [g[model.index["discrepancy_log_scale"]] < np.log(0.1) for g in guesses]
+        calls.setdefault("starts", []).append((starts, len(guesses), off[0]))
+        best = int(np.argmax(off))
+        return np.array(guesses[best], float), -100.0 + (40.0 if off[best] else 10.0)
+
+    monkeypatch.setattr(cf, "find_map", found)
+    label = f"{term}+discrepancy"
+    whole = cf.screen_candidate(label, test, reduction, options, reference, term=term)
+    parts = [cf.screen_candidate(label, test, reduction, options, reference, term=term, part=p)
+             for p in cf.SCREEN_PARTS]
+    (whole_starts, whole_guesses, _), (ref_starts, ref_guesses, ref_off), (off_starts, off_guesses, off_off) = \
+        calls["starts"]
+    n_points = len(cf.make_extension(term).start_points(cf._model_for(label, test, reduction, options, None)))
+    assert (ref_guesses, off_guesses, whole_guesses) == (n_points, 1, n_points + 1)
+    assert (ref_off, off_off) == (False, True)
+    assert ref_starts + off_starts == max(whole_starts, options.sampler.map_starts)
+    best = cf.best_screen(parts + [None])
+    assert best.map_gain == pytest.approx(40.0) and whole.map_gain == pytest.approx(40.0)
+    assert best.seconds == pytest.approx(sum(p.seconds for p in parts))
+    with pytest.raises(ValueError, match="screen part"):
+        cf.screen_candidate(label, test, reduction, options, reference, term=term, part="jittered")
+
+
+def test_a_candidate_sent_to_workers_keeps_its_model_and_map_without_its_draws():
+    test, _ = synthesize("drogue", "none", 1)
+    reduction = reduce_test(test)
+    model = prepare_model(test, reduction)
+    sampling = cf_fit.SamplingResult(names=model.names, runs=[object()], theta_map=np.zeros(model.ndim),
+                                     log_post_map=-5.0, options=cf_fit.SamplerOptions())
+    candidate = cf.CandidateFit(name="baseline", fit=cf_fit.Fit(model=model, sampling=sampling, tree=object(),
+                                                                summary={}), loo=object(), seconds=1.0)
+    light = cf.for_tasks(candidate)
+    assert light.fit.model is model and light.fit.sampling.log_post_map == -5.0
+    assert light.fit.tree is None and light.loo is None and light.fit.sampling.runs == []
+    assert candidate.fit.sampling.runs and candidate.fit.tree is not None      # the original is untouched
 
 
 @pytest.mark.parametrize("share, mode, sampled", [(0.6, "full", True), (0.4, "full", False), (0.6, "screen", False),

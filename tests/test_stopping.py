@@ -152,7 +152,7 @@ def test_the_ess_rule_draws_the_tau_rules_chain(tmp_path):
         np.testing.assert_array_equal(a["mcmc"]["chain"][...], b["mcmc"]["chain"][...])
 
 
-@pytest.mark.parametrize("proposal", ["de", "adaptive"])
+@pytest.mark.parametrize("proposal", ["de", "adaptive", "pooled"])
 def test_an_interrupted_ess_run_resumes_to_the_same_draws(tmp_path, proposal):
     """A kill mid-round leaves ensembles at different chunks; the rerun catches up, replays the checks (and
     refits the adaptive proposal from the same stored draws) and ends with the draws of an uninterrupted run."""
@@ -199,6 +199,37 @@ def test_the_adaptive_proposal_cuts_tau_and_samples_the_same_target():
     plain, _ = run_ensembles(model, inits, seeds, SamplerOptions(stop="ess", ess_target=10**6, check_every=100,
                                                                  store_every=1, max_steps=200, proposal="de"))
     np.testing.assert_array_equal(short[0].draws, plain[0].draws)
+
+
+def test_the_pooled_proposal_is_one_fit_to_every_ensembles_window_and_samples_the_same_target():
+    """proposal="pooled": every ensemble gets the proposal fitted to all ensembles' warm-up windows (one
+    that has not crossed a slow direction reaches where the others are); the kept draws still recover
+    the target."""
+    from types import SimpleNamespace
+
+    from cpas_bayes.inference import fit as fit_module
+    from cpas_bayes.inference.moves import fit_proposal
+
+    rng = np.random.default_rng(3)
+    chains = [rng.normal(loc, 1.0, size=(40, 8, 3)) for loc in (0.0, 2.0)]   # (steps, walkers, D), apart
+    stores = [SimpleNamespace(model=None, sampler=SimpleNamespace(
+        ndim=3, backend=SimpleNamespace(get_chain=lambda discard=0, c=c: c[discard:]))) for c in chains]
+    windows = {40: (10, 40)}
+    pooled = fit_module._proposals_at(stores, 40, windows, None, pooled=True)
+    own = fit_module._proposals_at(stores, 40, windows, None)
+    both = fit_proposal(np.concatenate([c[10:40].reshape(-1, 3) for c in chains]))
+    assert pooled[0] is pooled[1]
+    np.testing.assert_allclose(pooled[0][0], both[0])
+    np.testing.assert_allclose(pooled[0][1], both[1])
+    np.testing.assert_allclose(own[1][0], chains[1][10:40].reshape(-1, 3).mean(axis=0))
+    assert fit_module._proposals_at(stores, 50, windows, own) is own          # frozen after the warm-up
+
+    model, inits, seeds = _toy(walkers=12)
+    runs, seen = run_ensembles(model, inits, seeds, _ess_options(2000, proposal="pooled"))
+    assert seen["proposal"] == "pooled" and seen["ess_bulk_min"] >= 2000 and seen["rhat_max"] <= 1.01
+    flat = np.concatenate([r.draws.reshape(-1, 3) for r in runs])
+    np.testing.assert_allclose(np.cov(flat.T), np.linalg.inv(model.precision), atol=0.08)
+    assert np.all(np.abs(flat.mean(axis=0)) < 0.06)
 
 
 def test_options_refuse_an_unknown_rule_or_target():

@@ -267,7 +267,8 @@ def synth_command(scenario, effect, magnitude, seed, out):
               help=f"With --stop ess: the bulk and tail ESS every parameter needs [default: {ESS_TARGET}].")
 @click.option("--proposal", type=click.Choice(PROPOSALS), default="adaptive", show_default=True,
               help="With --stop ess: 'adaptive' mixes in an independence move fitted to each ensemble's draws "
-                   "after a warm-up (τ ~15× shorter); 'de' differential evolution alone.")
+                   "after a warm-up (τ ~15× shorter); 'pooled' the same move fitted to all ensembles' warm-up "
+                   "draws (the diagnosis' fits: faster across a slow direction); 'de' differential evolution alone.")
 @click.option("--coordinates", type=click.Choice(COORDINATES), default="model", show_default=True,
               help="Where the walkers move: 'model' the parameters as written; 'drag_area' each reefed stage's "
                    "drag area ε·CDS_o in place of its ratio ε (same posterior; measured no shorter τ, README).")

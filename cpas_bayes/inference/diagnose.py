@@ -45,7 +45,8 @@ import pandas as pd
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, CandidateFit, DiagnoseOptions,
                                                  baseline_from_fit, fit_candidate, fit_model_form, model_label,
-                                                 polish_baseline_map, screen_candidate)
+                                                 polish_baseline_map, screen_candidate,
+                                                 SCREEN_PARTS, best_screen, for_tasks)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_term, compare_table,
                                                  fit_converged, paired_difference, passes, structured_phases,
@@ -100,8 +101,8 @@ class Diagnosis:
 
 
 def _screen_task(job):
-    label, term, test, reduction, options, reference, baseline = job
-    return screen_candidate(label, test, reduction, options, reference, baseline=baseline, term=term)
+    label, term, test, reduction, options, reference, baseline, part = job
+    return screen_candidate(label, test, reduction, options, reference, baseline=baseline, term=term, part=part)
 
 
 def _candidate_task(job, executor=None):
@@ -387,16 +388,21 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
             break
         labels = {t: model_label(named + [t], discrepancy=True) for t in remaining}
         # every round screens first: a term whose MAP cannot rise cannot gain out of sample
-        results = executor.map(_screen_task, [(labels[t], t, test, reduction, options, reference, baseline)
-                                              for t in remaining], desc="screen", progress=False)
-        screen = dict(zip(remaining, results))
+        # each screen's two groups of starts as tasks of their own: an added mass's searches from the
+        # reference (~60 s on a Main) would otherwise hold one worker while the other idles
+        light_reference, light_baseline = for_tasks(reference), for_tasks(baseline)
+        tasks = [(t, part) for part in SCREEN_PARTS for t in remaining]
+        results = executor.map(_screen_task, [(labels[t], t, test, reduction, options, light_reference,
+                                               light_baseline, part) for t, part in tasks],
+                               desc="screen", progress=False)
+        screen = {t: best_screen([r for (u, _), r in zip(tasks, results) if u == t]) for t in remaining}
         for t, r in screen.items():
             say(f"{test.name}: screen {t} with {reference.name}: MAP gain {r.map_gain:+.1f}"
                 + (f", size {r.size:.3g}" if r.size is not None else "") + (" → sample" if r.passed else ""))
         if not named:
             first_screen = screen
         to_fit = [t for t in remaining if screen[t].passed]
-        jobs = [(labels[t], test, reduction, options, reference, baseline,
+        jobs = [(labels[t], test, reduction, options, light_reference, light_baseline,
                  [screen[t].theta_map]) for t in to_fit]
         fitted = dict(zip(to_fit, _run_fits(executor, jobs, say, test.name)))
         fits.update({labels[t]: f for t, f in fitted.items()})
@@ -417,8 +423,8 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
                                                       max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR,
                                                       tau_factor=options.sampler.tau_factor * RETRY_STEPS_FACTOR))
             say(f"{test.name}: {', '.join(retry)} gained but did not converge: a fit {RETRY_STEPS_FACTOR}× longer")
-            jobs = [(labels[t], test, reduction, longer, reference, baseline, [fitted[t].fit.sampling.theta_map])
-                    for t in retry]
+            jobs = [(labels[t], test, reduction, longer, light_reference, light_baseline,
+                     [fitted[t].fit.sampling.theta_map]) for t in retry]
             fitted.update(zip(retry, _run_fits(executor, jobs, say, test.name)))
             fits.update({labels[t]: fitted[t] for t in retry})
             checks = [judge(t) for t in to_fit]
@@ -469,9 +475,10 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     generic = [n for n in options.candidates if n not in PHYSICAL and n != DISCREPANCY]
 
     # the discrepancy, the model forms and any generic alternatives asked for, side by side
-    jobs = [(DISCREPANCY, test, reduction, options, baseline, baseline, None)]
-    jobs += _model_form_jobs(test, reduction, options, baseline)
-    jobs += [(g, test, reduction, options, baseline, baseline, None) for g in generic]
+    light_baseline = for_tasks(baseline)     # the workers read its model and MAP, not its draws
+    jobs = [(DISCREPANCY, test, reduction, options, light_baseline, light_baseline, None)]
+    jobs += _model_form_jobs(test, reduction, options, light_baseline)
+    jobs += [(g, test, reduction, options, light_baseline, light_baseline, None) for g in generic]
     first = dict(zip([j[0] for j in jobs], _run_fits(executor, jobs, say, test.name)))
     discrepancy = first[DISCREPANCY]
     forms = {k: v for k, v in first.items() if k.startswith("form:")}
@@ -483,7 +490,8 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     named_fit = None
     if named:
         label = model_label(named)
-        named_fit = _run_fits(executor, [(label, test, reduction, options, reference, baseline, None)], say,
+        named_fit = _run_fits(executor, [(label, test, reduction, options, for_tasks(reference), light_baseline,
+                                          None)], say,
                               test.name)[0]
         fits[label] = named_fit
     final = named_fit or baseline

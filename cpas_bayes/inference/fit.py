@@ -69,7 +69,7 @@ from cpas_bayes.inference.stopping import (ESS_TARGET, RHAT_TARGET, STOP_RULES, 
 from cpas_bayes.stats.model import TestModel
 
 
-PROPOSALS = ("de", "adaptive")
+PROPOSALS = ("de", "adaptive", "pooled")
 
 
 @dataclass(frozen=True)
@@ -326,16 +326,29 @@ def _schedule(options):
     return ends, warm, windows
 
 
-def _proposal_at(store, start, windows, frozen):
-    """The independence proposal for the chunk from stored step ``start``: fitted to its window, or frozen."""
+def _window_draws(store, window):
+    lo, hi = window
+    # the window only: the chain before it is not copied
+    return store.sampler.backend.get_chain(discard=lo)[:hi - lo].reshape(-1, store.sampler.ndim)
+
+
+def _proposals_at(stores, start, windows, frozen, pooled=False):
+    """Each ensemble's independence proposal for the chunk from stored step ``start``: fitted to its
+    window, or the frozen ones. ``pooled``: one proposal fitted to every ensemble's window.
+
+    Pooled, an ensemble that has not yet crossed a slow direction of the posterior gets a proposal that
+    reaches where the others are; each chain's kernel is still fixed after the warm-up (its draws are
+    dropped), so every kept draw comes from one valid kernel, and R-hat still compares ensembles started
+    apart."""
     from cpas_bayes.inference.moves import fit_proposal
 
-    if start in windows:
-        lo, hi = windows[start]
-        # the window only: the chain before it is not copied
-        draws = store.sampler.backend.get_chain(discard=lo)[:hi - lo].reshape(-1, store.sampler.ndim)
-        return fit_proposal(draws, getattr(store.model, "log_scale", None))   # a bare log density: θ coordinates
-    return frozen
+    if start not in windows:
+        return frozen
+    log_columns = getattr(stores[0].model, "log_scale", None)   # a bare log density: θ coordinates
+    if pooled:
+        proposal = fit_proposal(np.concatenate([_window_draws(st, windows[start]) for st in stores]), log_columns)
+        return [proposal] * len(stores)
+    return [fit_proposal(_window_draws(st, windows[start]), log_columns) for st in stores]
 
 
 def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
@@ -360,7 +373,7 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
         while True:
             raise_if_requested()  # between chunks: every checkpoint is complete
             end = ends(k)
-            proposals = [_proposal_at(st, start, windows, p) for st, p in zip(stores, proposals)]
+            proposals = _proposals_at(stores, start, windows, proposals, pooled=options.proposal == "pooled")
             behind = [(st, p) for st, p in zip(stores, proposals) if st.stored < end]
             jobs = [(model, st.next_state(), end - st.stored, options.store_every, p) for st, p in behind]
             for (st, _), piece in zip(behind, executor.map(_chunk_task, jobs, desc="chunk", progress=False)):
