@@ -368,3 +368,31 @@ def test_fit_command_offers_the_cml_options():
     assert result.exit_code == 0
     assert "cml_linear" in result.output and "--below-previous" in result.output and "hold" in result.output
 
+
+
+@pytest.mark.parametrize("decay, below_previous", OPTIONS)
+def test_the_compiled_drag_area_rate_is_the_stage_laws_derivative(decay, below_previous):
+    # The added mass reads dCDS/dt from the kernel: it must be the law's derivative wherever the law is
+    # smooth (a 1e-6 s central difference away from the kinks), zero before the first stage and at rest,
+    # and leave the drag areas and timing as they are without it.
+    args = _random_cluster_stages(np.random.default_rng(34))
+    t = np.linspace(0.0, 20.0, 4001)
+    law = dict(decay=decay, below_previous=below_previous)
+    cds, rate, timing = cluster_drag_area(t, with_rate=True, **law, **args)
+    plain, plain_timing = cluster_drag_area(t, **law, **args)
+    np.testing.assert_array_equal(cds, plain)
+    np.testing.assert_array_equal(timing.t_fp, plain_timing.t_fp)
+    h = 1e-6
+    ahead, _ = cluster_drag_area(t + h, **law, **args)
+    behind, _ = cluster_drag_area(t - h, **law, **args)
+    numeric = (ahead - behind) / (2 * h)
+    # smooth: both neighbours in the same piece of the law (the one-sided slopes agree)
+    left = (cds - behind) / h
+    right = (ahead - cds) / h
+    smooth = np.isclose(left, right, rtol=1e-3, atol=1e-6)
+    assert smooth.mean() > 0.95
+    np.testing.assert_allclose(rate[smooth], numeric[smooth], rtol=2e-4, atol=1e-4)
+    assert np.all(rate[..., t < args["start"][..., :1].min()] == 0.0)
+    growing = (rate > 1e-3) & smooth
+    decaying = (rate < -1e-3) & smooth
+    assert growing.sum() > 100 and decaying.sum() > 100      # the draw exercises growth and decay

@@ -396,3 +396,33 @@ def test_added_mass_and_its_rate_together_equal_the_two_formulas():
     np.testing.assert_allclose(mass, added_mass(cds, rho, k_a, exponent, cds_o), rtol=1e-12, atol=0)
     np.testing.assert_allclose(rate, added_mass_rate(cds, cds_rate, rho, rho_rate, k_a, exponent, cds_o),
                                rtol=1e-12, atol=1e-300)
+
+
+def test_the_compiled_lagged_added_mass_equals_its_two_formulas():
+    """``lagged_added_mass`` (one compiled pass, the likelihood's) gives what ``added_mass_and_rate`` then
+    ``lagged_mass_rate`` give: mass = target + τ_m·g, rate = −g, with plateaus of equal drag area (where
+    it reuses the power), zero areas and a zero lag among the rows."""
+    from cpas_bayes.physics.effects import added_mass_and_rate, lagged_added_mass, lagged_mass_rate
+
+    rng = np.random.default_rng(6)
+    B, P, N = 6, 3, 60
+    t = np.cumsum(rng.uniform(0.005, 0.03, N))
+    cds = np.sort(rng.uniform(0.0, 80.0, (B, P, N)), axis=-1)
+    cds[:, :, :5] = 0.0                                # before a stage starts
+    cds[:, :, 30:45] = cds[:, :, 30:31]                # a settled stage
+    cds_rate = rng.normal(0.0, 50.0, (B, P, N))
+    cds_rate[:, :, 30:45] = 0.0
+    rho = rng.uniform(0.4, 1.2, (1, N))
+    rho_rate = rng.normal(0.0, 1e-3, (1, N))
+    k_a = rng.uniform(0.0, 1.0, B)
+    exponent = np.array([1.0, 1.2, 1.5, 1.5, 2.0, 2.25])
+    lag = np.array([0.0, 0.01, 0.05, 0.2, 0.0, 0.1])
+    cds_o = rng.uniform(50.0, 90.0, (B, P))
+    mass, rate = lagged_added_mass(cds, cds_rate, rho, rho_rate, k_a, exponent, cds_o, t, lag)
+    target, target_rate = added_mass_and_rate(cds, cds_rate, rho[:, None], rho_rate[:, None], k_a[:, None, None],
+                                              exponent[:, None, None], cds_o[..., None])
+    g = lagged_mass_rate(target_rate, t, lag)
+    np.testing.assert_allclose(mass, target + lag[:, None, None] * g, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(rate, -g, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="lag"):
+        lagged_added_mass(cds, cds_rate, rho, rho_rate, k_a, exponent, cds_o, t, -lag - 0.1)

@@ -1,6 +1,6 @@
 """Physical and sensor effects beyond the seed's reduction equations.
 
-Pure functions (numpy, and one numba loop for a lag), each broadcasting over leading batch axes (runs,
+Pure functions (numpy, and numba loops for a lag and the lagged added mass), each broadcasting over leading batch axes (runs,
 walkers, parachutes) with time last where there is a time axis. The simulator
 (:mod:`cpas_bayes.physics.trajectory`), the synthetic-test generator
 (:mod:`cpas_bayes.data.synth`) and the model extensions that fit these effects all
@@ -179,6 +179,74 @@ def _lag_error(rate, times, lag):
                          - (rate[b, i, n] - rate[b, i, n - 1]) * (1.0 - c))
                 out[b, i, n] = g
     return out
+
+
+def lagged_added_mass(cds, cds_rate, density, density_rate, k_a, exponent, reference_cds, t, lag):
+    """(m_a, dm_a/dt) of a mass that follows Eq. A1' through the first-order lag of Eq. A5, in one compiled
+    pass: what :func:`added_mass_and_rate` then :func:`lagged_mass_rate` give (mass = target + τ_m·g,
+    rate = −g), for the likelihood's walker batches.
+
+    ``cds``, ``cds_rate`` (B, P, N); ``density``, ``density_rate`` (B or 1, N); ``k_a``, ``exponent``,
+    ``lag`` (B,); ``reference_cds`` CDS_o (B, P); ``t`` (N,) or (B or 1, N) increasing. The area ratio's
+    power is computed once per run of equal drag areas (a settled stage), not per bin.
+    """
+    cds = np.ascontiguousarray(cds, float)
+    B = cds.shape[0]
+    rows = lambda a: np.ascontiguousarray(np.asarray(a, float).reshape(-1, cds.shape[-1]))  # noqa: E731
+    per_row = lambda a: np.ascontiguousarray(np.broadcast_to(np.asarray(a, float).reshape(-1), (B,)))  # noqa: E731
+    reference = np.ascontiguousarray(np.broadcast_to(_reference_area(reference_cds), cds.shape[:2]))
+    lag = per_row(lag)
+    if np.any(lag < 0):
+        raise ValueError("the added-mass lag must be ≥ 0")
+    return _lagged_added_mass(cds, np.ascontiguousarray(cds_rate, float), rows(density), rows(density_rate),
+                              per_row(k_a), per_row(exponent), reference, rows(t), lag, ADDED_MASS_EXPONENT)
+
+
+@numba.njit(cache=True)
+def _lagged_added_mass(cds, cds_rate, density, density_rate, k_a, exponent, reference, times, lag, volume_power):
+    n_rows, n_chutes, n_times = cds.shape
+    mass = np.empty_like(cds)
+    rate = np.empty_like(cds)
+    for b in range(n_rows):
+        t = times[b if times.shape[0] > 1 else 0]
+        rho = density[b if density.shape[0] > 1 else 0]
+        rho_rate = density_rate[b if density_rate.shape[0] > 1 else 0]
+        p, tau = exponent[b], lag[b]
+        # the lag's step factors depend on the row's τ_m and the times only: once per row, not per parachute
+        one_minus_a = np.zeros(n_times)
+        c = np.zeros(n_times)
+        if tau > 0.0:
+            for n in range(1, n_times):
+                step = t[n] - t[n - 1]
+                one_minus_a[n] = -np.expm1(-step / tau)
+                c[n] = tau / step * one_minus_a[n]
+        for i in range(n_chutes):
+            ref = reference[b, i]
+            scale = k_a[b] * ref ** volume_power
+            previous_area, lower, powered = -1.0, 0.0, 0.0
+            g, previous_target_rate = 0.0, 0.0
+            for n in range(n_times):
+                area = max(cds[b, i, n], 0.0)
+                if area != previous_area:     # (CDS/CDS_o)^(p−1) and ^p; p ≥ 1 in the prior, so finite at 0
+                    ratio = area / ref
+                    if ratio > 0.0:
+                        lower = ratio ** (p - 1.0)
+                        powered = lower * ratio
+                    else:
+                        lower = 1.0 if p == 1.0 else (0.0 if p > 1.0 else np.inf)
+                        powered = 0.0
+                    previous_area = area
+                target = scale * rho[n] * powered
+                target_rate = scale * (rho_rate[n] * powered + p * rho[n] * lower * cds_rate[b, i, n] / ref)
+                if n == 0 or tau <= 0.0:
+                    g = -target_rate
+                else:
+                    g = ((1.0 - one_minus_a[n]) * g - previous_target_rate * one_minus_a[n]
+                         - (target_rate - previous_target_rate) * (1.0 - c[n]))
+                previous_target_rate = target_rate
+                mass[b, i, n] = target + tau * g
+                rate[b, i, n] = -g
+    return mass, rate
 
 
 def added_mass_momentum_rate(mass, mass_rate, airspeed, acceleration):

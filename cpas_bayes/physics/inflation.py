@@ -326,6 +326,41 @@ def compiled_stage_drag_area(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, deca
 
 
 @numba.njit(cache=True)
+def compiled_stage_drag_area_rate(tau, held, cds_i, t_f, t_fp, expopen, ck, t_k, decay):
+    """d/dt of :func:`compiled_stage_drag_area` (m²/s), same arguments; the right-hand derivative at a kink.
+
+    Growth: (CDS_i − CDS_start)·expopen/t_f·(τ/t_f)^(expopen−1); linear decay −(C_k − 1)·CDS_i/t_k;
+    exponential −ln C_k/t_k times the drag area; zero where the drag area holds."""
+    if t_f <= 0.0 or tau < 0.0:
+        return 0.0
+    if tau < t_fp:
+        if tau <= 0.0:
+            return 0.0
+        return (cds_i - held) * expopen / t_f * (tau / t_f) ** (expopen - 1.0)
+    if t_k <= 0.0:
+        return 0.0
+    frac = (tau - t_fp) / t_k
+    if frac >= 1.0:
+        return 0.0
+    peak = ck * cds_i
+    if decay == DECAY_EXPONENTIAL:
+        return -peak * ck ** (-frac) * np.log(ck) / t_k
+    return -(peak - cds_i) / t_k
+
+
+@numba.njit(cache=True)
+def parachute_stage_rate(t, start, cds_stage, expopen, ck, t_k, n_stages, decay, t_f, t_fp, held, out):
+    """One parachute's dCDS/dt at ``t`` (N,) into ``out`` (N,), from the stage timing (``t_f``, ``t_fp``,
+    ``held``: (K,)) that :func:`parachute_stage_law` wrote; zero before the first stage."""
+    for i in range(t.shape[0]):
+        for k in range(n_stages - 1, -1, -1):
+            if t[i] >= start[k]:
+                out[i] = compiled_stage_drag_area_rate(t[i] - start[k], held[k], cds_stage[k], t_f[k], t_fp[k],
+                                                       expopen[k], ck[k], t_k[k], decay)
+                break
+
+
+@numba.njit(cache=True)
 def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
                         n_stages, decay, below_previous, fill_is_np, t_sorted, out, t_f_out, t_fp_out, n_out,
                         held_out):
@@ -381,7 +416,7 @@ def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, c
 @numba.njit(cache=True)
 def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
                       n_stages, decay, below_previous, fill_is_np, t_sorted, out, t_f_out, t_fp_out, n_out,
-                      held_out):
+                      held_out, with_rate, rate_out):
     B, P = start.shape[:2]
     per_walker_time = t.shape[0] > 1
     for b in range(B):
@@ -391,16 +426,22 @@ def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
                                 expopen[b, p], ck[b, p], t_k[b, p], v_start[b, p], n_stages[p], decay,
                                 below_previous, fill_is_np, t_sorted, out[b, p], t_f_out[b, p], t_fp_out[b, p],
                                 n_out[b, p], held_out[b, p])
+            if with_rate:
+                parachute_stage_rate(t[tb], start[b, p], cds_stage[b, p], expopen[b, p], ck[b, p], t_k[b, p],
+                                     n_stages[p], decay, t_f_out[b, p], t_fp_out[b, p], held_out[b, p],
+                                     rate_out[b, p])
 
 
 def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
-                      n_stages=None, decay="linear", fill_constant="n_p", below_previous="drop"):
+                      n_stages=None, decay="linear", fill_constant="n_p", below_previous="drop", with_rate=False):
     """Compiled :func:`parachute_drag_area` for a cluster: stage arrays (B, P, K), ``cds_o`` (B, P).
 
     ``t`` is (N,) shared by all rows, or (B, N) one time base per row (for a
     shifted sensor). ``n_stages`` (P,) gives each parachute's real stage count
     (extra stage slots are ignored). Returns ``cds`` (B, P, N) and a
-    :class:`StageTiming` with fields (B, P, K).
+    :class:`StageTiming` with fields (B, P, K); ``with_rate`` also dCDS/dt
+    (B, P, N) between them (:func:`compiled_stage_drag_area_rate`), for the
+    added mass, which otherwise differenced two more evaluations.
     """
     codes = decay_code(decay), below_previous_code(below_previous)
     start = np.ascontiguousarray(start, dtype=float)
@@ -415,11 +456,13 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     fields = [np.zeros((B, P, K)) for _ in range(4)]
     # Ascending times (every caller's but a user's own) let each stage visit only its own bins.
     t_sorted = bool(np.all(t2[:, 1:] >= t2[:, :-1]))
+    rate = np.zeros_like(out) if with_rate else np.zeros((1, 1, 1))
     _drag_area_kernel(t2, start, stage[0], cds_o, diameter, *stage[1:], n_stages, *codes,
-                      fill_constant == "n_p", t_sorted, out, *fields)
+                      fill_constant == "n_p", t_sorted, out, *fields, with_rate, rate)
     t_f, t_fp, n, held = fields
     if fill_constant == "n_p":
         n_p = stage[1]
     else:
         n_p = n * np.where(t_f > 0, t_fp / np.where(t_f > 0, t_f, 1.0), 1.0)
-    return out, StageTiming(cds_start=held, t_f=t_f, t_fp=t_fp, n=n, n_p=n_p)
+    timing = StageTiming(cds_start=held, t_f=t_f, t_fp=t_fp, n=n, n_p=n_p)
+    return (out, rate, timing) if with_rate else (out, timing)

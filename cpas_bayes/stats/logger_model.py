@@ -62,7 +62,6 @@ from scipy.linalg import solve_triangular
 from cpas_bayes.data import air_reconstruction as air
 from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.physics import flight_path as fp
-from cpas_bayes.physics.inflation import cluster_drag_area
 from cpas_bayes.stats.distributions import TruncNormal
 from cpas_bayes.stats.model import TestModel
 from cpas_bayes.stats.model_parts import Context, Parameter, Prediction
@@ -268,14 +267,8 @@ class LoggerModel(TestModel):
         stage["v_start"] = fp.interpolate_rows(tr.time, tr.airspeed, start.reshape(B, -1)).reshape(start.shape)
         return stage
 
-    def drag_areas(self, stage, t):
-        if np.ndim(t) == 3:
-            t = t[:, 0, :]
-        return cluster_drag_area(
-            t, stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter,
-            stage["n_p"], stage["expopen"], stage["ck"], stage["tk"], stage["v_start"],
-            n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p",
-            below_previous=self.below_previous)
+    def stage_start_airspeed(self, stage):
+        return stage["v_start"]     # the fitted track's, not a measured airspeed
 
     def _predict(self, theta):
         theta = np.atleast_2d(theta)

@@ -317,16 +317,20 @@ class TestModel:
 
     # -- forward model ------------------------------------------------------
 
-    def drag_areas(self, stage, t):
-        """Per-parachute drag areas (B, P, N) at times ``t`` (N,) or (B, 1, N) and the stage timing."""
-        v_start = self.obs.airspeed_at(stage["start"])
+    def stage_start_airspeed(self, stage):
+        """V_i of every stage (B, P, K): the measured airspeed at its start."""
+        return self.obs.airspeed_at(stage["start"])
+
+    def drag_areas(self, stage, t, with_rate=False):
+        """Per-parachute drag areas (B, P, N) at times ``t`` (N,) or (B, 1, N) and the stage timing;
+        ``with_rate``: (drag areas, their time derivative, timing)."""
         if np.ndim(t) == 3:  # (B, 1, N): one time base per row
             t = t[:, 0, :]
         return cluster_drag_area(
             t, stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter,
-            stage["n_p"], stage["expopen"], stage["ck"], stage["tk"], v_start,
+            stage["n_p"], stage["expopen"], stage["ck"], stage["tk"], self.stage_start_airspeed(stage),
             n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p",
-            below_previous=self.below_previous)
+            below_previous=self.below_previous, with_rate=with_rate)
 
     def predict(self, theta):
         theta = np.atleast_2d(theta)

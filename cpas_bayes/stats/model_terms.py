@@ -55,15 +55,14 @@ import math
 
 import numpy as np
 
-from cpas_bayes.physics.effects import (added_mass_acceleration, added_mass_and_rate, added_mass_momentum_rate,
-                                        breathing_factor, lagged_mass_rate)
+from cpas_bayes.physics.effects import (added_mass_acceleration, added_mass_momentum_rate, breathing_factor,
+                                        lagged_added_mass)
 from cpas_bayes.stats.discrepancy import Discrepancy
 from cpas_bayes.stats.model_parts import Extension, Parameter
 from cpas_bayes.stats.distributions import LogNormal, Normal, TruncNormal, Uniform
 from cpas_bayes.core.units import STANDARD_GRAVITY
 
 _LOG_2PI = math.log(2.0 * math.pi)
-_DERIVATIVE_STEP = 1e-3  # s, central difference of the stage law
 
 
 class AddedMass(Extension):
@@ -89,21 +88,11 @@ class AddedMass(Extension):
     def apparent_drag_area(self, ctx, t):
         model, obs = ctx.model, ctx.model.obs
         v = ctx.values
-        k_a = v["k_a"][:, None, None]
-        exponent = v["mass_exponent"][:, None, None]
-        cds_o = ctx.stage["cds_o"][:, :, None]
         tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]      # (1 or B, 1, N)
-        cds_plus, _ = model.drag_areas(ctx.stage, tt + _DERIVATIVE_STEP)
-        cds_minus, _ = model.drag_areas(ctx.stage, tt - _DERIVATIVE_STEP)
-        cds = 0.5 * (cds_plus + cds_minus)
-        cds_rate = (cds_plus - cds_minus) / (2 * _DERIVATIVE_STEP)
+        cds, cds_rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)   # the stage law's own dCDS/dt
         rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
-        target, target_rate = added_mass_and_rate(cds, cds_rate, rho,
-                                                  np.interp(tt, obs.native_time, self._density_rate), k_a,
-                                                  exponent, cds_o)
-        lag_error = lagged_mass_rate(target_rate, tt, v["mass_lag"])
-        mass = target + v["mass_lag"][:, None, None] * lag_error
-        rate = -lag_error
+        mass, rate = lagged_added_mass(cds, cds_rate, rho, np.interp(tt, obs.native_time, self._density_rate),
+                                       v["k_a"], v["mass_exponent"], ctx.stage["cds_o"], tt, v["mass_lag"])
         # dV/dt from the system's momentum balance (effects Eq. A3) with the model's own
         # drag areas: differencing the measured airspeed would turn its noise into
         # m_a·dV/dt errors far larger than the effect on a Main.
