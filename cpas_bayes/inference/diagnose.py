@@ -43,10 +43,10 @@ import numpy as np
 import pandas as pd
 
 from cpas_bayes.data.reduction import reduce_test
-from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, CandidateFit, DiagnoseOptions,
-                                                 baseline_from_fit, fit_candidate, fit_model_form, model_label,
-                                                 polish_baseline_map, screen_candidate,
-                                                 SCREEN_PARTS, best_screen, for_tasks)
+from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_PARTS, CandidateFit,
+                                                 DiagnoseOptions, baseline_from_fit, best_screen, fit_candidate,
+                                                 fit_model_form, for_tasks, model_label, polish_baseline_map,
+                                                 screen_candidate)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_term, compare_table,
                                                  fit_converged, paired_difference, passes, structured_phases,

@@ -1,7 +1,7 @@
 """Physical and sensor effects beyond the seed's reduction equations.
 
-Pure functions (numpy, and numba loops for a lag and the lagged added mass), each broadcasting over leading batch axes (runs,
-walkers, parachutes) with time last where there is a time axis. The simulator
+Pure functions (numpy, and numba loops for a lag and the lagged added mass), each broadcasting over
+leading batch axes (runs, walkers, parachutes) with time last where there is a time axis. The simulator
 (:mod:`cpas_bayes.physics.trajectory`), the synthetic-test generator
 (:mod:`cpas_bayes.data.synth`) and the model extensions that fit these effects all
 call these same functions, so a fitted effect means what the simulated one did.
@@ -115,8 +115,8 @@ def added_mass_rate(cds, cds_rate, density, density_rate, k_a, exponent=ADDED_MA
 
 def added_mass_and_rate(cds, cds_rate, density, density_rate, k_a, exponent, reference_cds):
     """(m_a, dm_a/dt) of Eq. A1' together, as :func:`added_mass` and :func:`added_mass_rate` give them,
-    with one power of the area ratio for both ((CDS/CDS_o)^p = (CDS/CDS_o)^(p−1)·CDS/CDS_o): the
-    likelihood of the added-mass term calls this for every walker, parachute and time node."""
+    with one power of the area ratio for both ((CDS/CDS_o)^p = (CDS/CDS_o)^(p−1)·CDS/CDS_o); with
+    :func:`lagged_mass_rate`, the numpy reference of the likelihood's compiled :func:`lagged_added_mass`."""
     cds = np.clip(np.asarray(cds, float), 0.0, None)
     reference = _reference_area(reference_cds)
     ratio = cds / reference
