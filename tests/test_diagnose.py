@@ -297,6 +297,9 @@ def test_a_screen_split_in_parts_searches_every_start_once_and_keeps_the_best(mo
     calls = {}
 
     def found(model, rng, starts, guesses):   # each start its own optimum: the off start's wins by 30 in log p
+        if "discrepancy_log_scale" not in model.index:          # the plain model's search (no discrepancy)
+            calls.setdefault("plain", []).append(len(guesses))
+            return np.array(guesses[0], float), -150.0
         off = [g[model.index["discrepancy_log_scale"]] < np.log(0.1) for g in guesses]
         calls.setdefault("starts", []).append((starts, len(guesses), off[0]))
         best = int(np.argmax(off))
@@ -310,7 +313,9 @@ def test_a_screen_split_in_parts_searches_every_start_once_and_keeps_the_best(mo
     (whole_starts, whole_guesses, _), (ref_starts, ref_guesses, ref_off), (off_starts, off_guesses, off_off) = \
         calls["starts"]
     n_points = len(cf.make_extension(term).start_points(cf._model_for(label, test, reduction, options, None)))
-    assert (ref_guesses, off_guesses, whole_guesses) == (n_points, 1, n_points + 1)
+    # the off group: at the reference's MAP, and at the plain model's optimum (searched once per call)
+    assert (ref_guesses, off_guesses, whole_guesses) == (n_points, 2, n_points + 2)
+    assert calls["plain"] == [1, 1]
     assert (ref_off, off_off) == (False, True)
     assert ref_starts + off_starts == max(whole_starts, options.sampler.map_starts)
     best = cf.best_screen(parts + [None])
