@@ -21,7 +21,6 @@ import time as _time
 import warnings
 import zlib
 from dataclasses import dataclass, replace
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -176,9 +175,9 @@ def _model_for(label, test, reduction, options, baseline, **model_options):
                          below_previous=model_options.pop("below_previous", options.below_previous), **model_options)
 
 
-def _new_terms(model, reference):
-    """The extensions of ``model`` that the fitted ``reference`` lacks."""
-    known = {e.name for e in reference.fit.model.extensions}
+def _new_terms(model, reference_model):
+    """The extensions of ``model`` that ``reference_model`` lacks."""
+    known = {e.name for e in reference_model.extensions}
     return [e for e in model.extensions if e.name not in known]
 
 
@@ -191,9 +190,14 @@ def start_guesses(model, reference, points=None):
     Values are moved inside the prior's 0.1–99.9 % quantiles: a reference that sat at a bound (a
     discrepancy switched off at its lowest scale) would otherwise start the bounded search where its
     transform is singular, and the new term's parameters would not move."""
-    base = dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))
+    return _start_rows(model, reference.fit.model, reference.fit.sampling.theta_map, points)
+
+
+def _start_rows(model, reference_model, reference_theta, points=None):
+    """:func:`start_guesses` from any optimum ``reference_theta`` of ``reference_model``."""
+    base = dict(zip(reference_model.names, reference_theta))
     points = points or {}
-    lacking = {e.name for e in _new_terms(model, reference)}
+    lacking = {e.name for e in _new_terms(model, reference_model)}
     new = [e for e in model.extensions if e.name in lacking or e.name in points]
     rows = []
     for combo in itertools.product(*[points.get(e.name, e.start_points(model)) for e in new]) if new else [()]:
@@ -231,7 +235,7 @@ def fit_candidate(label, test, reduction, options: DiagnoseOptions, reference=No
         # alone: a jittered copy would cost a whole search (20–60 s on a Main with added mass) to find
         # the same optimum. From a reference that lacks terms, the jittered starts stay.
         reference = reference if reference is not None else baseline
-        settled = guesses is not None or not _new_terms(model, reference)
+        settled = guesses is not None or not _new_terms(model, reference.fit.model)
         if guesses is None:
             guesses = start_guesses(model, reference)
         starts = len(guesses) if settled else max(len(guesses), sampler.map_starts)
@@ -293,8 +297,10 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
     if part is not None and part not in SCREEN_PARTS:
         raise ValueError(f"unknown screen part {part!r}; use one of {SCREEN_PARTS} or None")
     started = _time.perf_counter()
-    model = _model_for(label, test, reduction, options, baseline if baseline is not None else reference)
-    guesses = {"reference": start_guesses(model, reference) if part in (None, "reference") else [], "off": []}
+    baseline = baseline if baseline is not None else reference
+    model = _model_for(label, test, reduction, options, baseline)
+    reference_starts = start_guesses(model, reference)
+    guesses = {"reference": reference_starts if part in (None, "reference") else [], "off": []}
     discrepancy = next((e for e in model.extensions if e.name == DISCREPANCY), None)
     key = [options.seed, candidate_seed_index(label), 3] + ([1 + SCREEN_PARTS.index(part)] if part else [])
     if discrepancy is not None and part in (None, "off"):
@@ -302,7 +308,7 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
         # first): from the reference's MAP the discrepancy already holds the misfit, and every search
         # keeps it there with the term small — a Main's added mass stopped at k_a 0.07 (log p 330
         # short) against 0.19 from this start, where the discrepancy switches itself off.
-        points = {e.name: e.start_points(model)[-1:] for e in _new_terms(model, reference)}
+        points = {e.name: e.start_points(model)[-1:] for e in _new_terms(model, reference.fit.model)}
         points[DISCREPANCY] = discrepancy.start_points(model)[:1]
         guesses["off"] = start_guesses(model, reference, points=points)
         guesses["off"] += _start_from_plain_optimum(label, test, reduction, options, reference, baseline, model,
@@ -311,8 +317,8 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
     if not chosen:       # no discrepancy: nothing to switch off
         return None
     # jittered starts (up to ``map_starts`` in all) belong to the reference's group
-    jitter = max(0, options.sampler.map_starts - len(start_guesses(model, reference))
-                 - (_OFF_STARTS if discrepancy is not None else 0))
+    off_starts = _OFF_STARTS if discrepancy is not None else 0
+    jitter = max(0, options.sampler.map_starts - len(reference_starts) - off_starts)
     theta, log_post = find_map(model, np.random.default_rng(key), len(chosen) + (jitter if part != "off" else 0),
                                chosen)
     gain = float(log_post - reference.fit.sampling.log_post_map)
@@ -344,12 +350,10 @@ def _start_from_plain_optimum(label, test, reduction, options, reference, baseli
     exponent at its lower edge, log p +322 over the reference); from this one at k_a 0.56, exponent 1.43
     (truth 0.58, 1.5), +2,014."""
     terms, _ = label_terms(label)
-    plain = _model_for(model_label(list(terms)), test, reduction, options,
-                       baseline if baseline is not None else reference)
+    plain = _model_for(model_label(list(terms)), test, reduction, options, baseline)
     starts = start_guesses(plain, reference, points={k: v for k, v in points.items() if k != DISCREPANCY})
     theta, _ = find_map(plain, rng, len(starts), starts)
-    optimum = SimpleNamespace(fit=SimpleNamespace(model=plain, sampling=SimpleNamespace(theta_map=theta)))
-    return start_guesses(model, optimum, points={DISCREPANCY: points[DISCREPANCY]})
+    return _start_rows(model, plain, theta, points={DISCREPANCY: points[DISCREPANCY]})
 
 
 def best_screen(results):

@@ -89,7 +89,7 @@ class AddedMass(Extension):
         model, obs = ctx.model, ctx.model.obs
         v = ctx.values
         tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]      # (1 or B, 1, N)
-        cds, cds_rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)   # the stage law's own dCDS/dt
+        cds, cds_rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)   # dCDS/dt: the law over ±1 ms
         rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
         mass, rate = lagged_added_mass(cds, cds_rate, rho, np.interp(tt, obs.native_time, self._density_rate),
                                        v["k_a"], v["mass_exponent"], ctx.stage["cds_o"], tt, v["mass_lag"])
