@@ -206,10 +206,25 @@ def _progress_bar(total, desc, progress):
 
 
 class Executor:
-    """Runs tasks one after another in this process (the reference the others must match)."""
+    """Runs tasks one after another in this process (the reference the others must match).
+
+    ``one_blas_thread``: BLAS runs one thread in this process until :meth:`close`, as it does in every
+    worker of a pool and, while a pool runs, in its caller (:class:`_OneThreadHere`). A multi-threaded
+    BLAS sums in another order, and a verdict at a threshold followed the thread count: a diagnosis
+    named a term (gain 10.3) with one thread and not (9.8, under the rule's 10) with two.
+    :func:`make_executor` sets it; numba's threads are left as they are (the Monte Carlo kernel's
+    parallelism when it runs here).
+    """
 
     kind = "serial"
     workers = 1
+
+    def __init__(self, one_blas_thread=False):
+        self._blas = None
+        if one_blas_thread:
+            from threadpoolctl import threadpool_limits
+
+            self._blas = threadpool_limits(limits=1, user_api="blas")
 
     def map(self, fn, items, desc="tasks", progress=None, on_report=None):
         """``[fn(item) for item in items]``, with ``fn(item, report)`` when ``on_report`` is given."""
@@ -231,7 +246,9 @@ class Executor:
         return "this process"
 
     def close(self):
-        pass
+        if self._blas is not None:
+            self._blas.restore_original_limits()
+            self._blas = None
 
     def __enter__(self):
         return self
@@ -290,6 +307,24 @@ def _call_without_reports(args):
     return fn(item, None)
 
 
+def start_worker_server(modules):
+    """Start the fork server of local workers now, importing ``modules`` (names) in it.
+
+    For a program that knows what its workers will run before it imports it itself
+    (:mod:`cpas_bayes.app.entry`): the server's imports then overlap the program's own. A pool made
+    later uses this server (its own preload list is ignored once the server runs). Nothing where
+    the platform has no fork server (spawned workers import on their own).
+    """
+    import multiprocessing as mp
+
+    if "forkserver" not in mp.get_all_start_methods():
+        return
+    from multiprocessing import forkserver
+
+    mp.get_context("forkserver").set_forkserver_preload(sorted(modules))
+    forkserver.ensure_running()
+
+
 class ProcessExecutor(Executor):
     """A local pool of ``workers`` processes.
 
@@ -313,7 +348,8 @@ class ProcessExecutor(Executor):
 
             self._ctx = mp.get_context("forkserver")
             # The server imports what the caller has imported of the package (the tasks' modules and
-            # their numerical libraries), so that workers start warm without this layer naming them.
+            # their numerical libraries), so that workers start warm without this layer naming them;
+            # unless it was started earlier (start_worker_server), with the modules the program named.
             self._ctx.set_forkserver_preload(sorted(m for m in sys.modules if m.startswith("cpas_bayes.") and not m.endswith("__main__")))
             # Start the server now: its imports (~2 s) overlap the caller's work until the first map.
             forkserver.ensure_running()
@@ -572,5 +608,5 @@ def make_executor(workers=1, scheduler=None) -> Executor:
     if scheduler:
         return DaskExecutor(None if scheduler == "local" else scheduler, workers)
     if workers is None or workers <= 1:
-        return Executor()
+        return Executor(one_blas_thread=True)
     return ProcessExecutor(workers)
