@@ -2,6 +2,6 @@
 
 import sys
 
-from cpas_bayes.app.cli import main
+from cpas_bayes.app.entry import main
 
 sys.exit(main())

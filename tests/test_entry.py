@@ -1,0 +1,66 @@
+"""The program's entry: which commands start the worker server early, and that doing so changes nothing
+else a user sees (errors, exit status, outputs)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+
+import pytest
+
+from cpas_bayes.app import entry
+from cpas_bayes.data.bundle import example_bundles
+
+
+@pytest.mark.parametrize("args,expected", [
+    (["fit", "b", "--out", "o"], "cpas_bayes.outputs.plots.fit"),
+    (["diagnose", "b", "--out", "o", "--workers", "4"], "cpas_bayes.inference.diagnose"),
+    (["campaign", "c.toml"], "cpas_bayes.app.campaign"),
+    (["fit", "b", "--workers=1"], None),
+    (["fit", "b", "--workers", "1"], None),
+    (["fit", "b", "--scheduler", "local"], None),
+    (["fit", "b", "--scheduler=tcp://h:8786"], None),
+    (["fit", "--help"], None),
+    (["validate", "b"], None),
+    (["montecarlo", "--memo", "m"], None),
+    ([], None),
+])
+def test_only_commands_that_start_local_workers_start_the_server(args, expected):
+    modules = entry.worker_modules(args)
+    if expected is None:
+        assert modules is None
+    else:
+        assert expected in modules and "cpas_bayes.app.cli" in modules
+
+
+def test_every_module_the_server_preloads_exists():
+    # a renamed module would make the server fail at start, and every worker with it
+    names = {m for mods in entry.WORKER_MODULES.values() for m in mods} | {"cpas_bayes.app.cli"}
+    missing = [m for m in names if importlib.util.find_spec(m) is None]
+    assert not missing
+
+
+def _run(args, tmp_path):
+    return subprocess.run([sys.executable, "-m", "cpas_bayes", *args], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=300)
+
+
+def test_bad_input_after_the_server_started_is_still_one_clear_message(tmp_path):
+    proc = _run(["fit", str(tmp_path / "no-such-bundle"), "--out", str(tmp_path / "fit")], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert "no-such-bundle" in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "fit").exists()
+
+
+@pytest.mark.slow
+def test_a_fit_through_the_program_uses_the_early_server_and_writes_its_outputs(tmp_path):
+    bundle = next(p for p in example_bundles() if p.name.startswith("drogue"))
+    out = tmp_path / "fit"
+    proc = _run(["fit", str(bundle), "--out", str(out), "--ensembles", "2", "--ess-target", "400"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "running on 2 local processes" in proc.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["diagnostics"]["converged"]
+    assert len(list(out.glob("*.png"))) >= 8
