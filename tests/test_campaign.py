@@ -101,6 +101,9 @@ def test_a_campaign_runs_reruns_in_seconds_and_grows_by_one_fit(tmp_path):
     # the lag test enters the memo with its extended fit
     assert manifest["pooled_fits"][lag_test].endswith("diagnosis/extended")
     assert (out / "memo" / "memo.toml").is_file()
+    # the pool's own tasks are timed where they ran (benchmarks' Amdahl law spreads them over workers)
+    pool = next(s for s in manifest["steps"] if s["name"] == "pool")
+    assert pool["tasks"] >= 2 + 4 and 0 < pool["longest_task_seconds"] <= pool["task_seconds"]
     mc = out / "montecarlo" / "2xdrogue-2st"
     for f in ("runs.csv", "summary.json", "peak_loads.png", "np_vs_n.json", "fill_time_np_vs_n.png"):
         assert (mc / f).stat().st_size > 0, f

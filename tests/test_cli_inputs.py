@@ -29,7 +29,8 @@ from cpas_bayes.app.cli import main
 from cpas_bayes.core import resources
 from cpas_bayes.core.errors import BundleError, InputError
 from cpas_bayes.core.files import atomic_path, write_text
-from cpas_bayes.core.executor import MAX_LOCAL_WORKERS, scheduler_problem
+from cpas_bayes.core.executor import MAX_LOCAL_WORKERS
+from cpas_bayes.core.scheduler_address import scheduler_problem
 from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
 from cpas_bayes.inference.fit_folder import load_fit
 from cpas_bayes.loads.budget import MAX_RUNS, run_bytes, table_bytes
@@ -625,7 +626,8 @@ def test_a_campaign_refuses_its_damaged_fit_and_diagnosis_files(files, fresh):
 
 def test_the_dask_client_gives_up_on_an_unreachable_scheduler_with_a_refusal():
     pytest.importorskip("distributed")
-    from cpas_bayes.core.executor import CONNECT_TIMEOUT, DaskExecutor
+    from cpas_bayes.core.executor import DaskExecutor
+    from cpas_bayes.core.scheduler_address import CONNECT_TIMEOUT
 
     started = time.perf_counter()
     with pytest.raises(InputError, match="no Dask scheduler answered"):

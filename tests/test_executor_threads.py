@@ -29,3 +29,23 @@ def test_a_bare_executor_leaves_the_callers_threads_alone():
         ex = Executor()
         assert _blas_threads() == before
         ex.close()
+
+
+def _slow_square(x):
+    import time
+
+    time.sleep(0.05 * x)
+    return x * x
+
+
+def test_a_task_clock_returns_what_its_executor_returns_and_times_each_task():
+    from cpas_bayes.core.task_clock import TaskClock
+
+    with make_executor(1) as inner:
+        clock = TaskClock(inner)
+        assert clock.map(_slow_square, [1, 3, 2]) == [1, 9, 4]
+        handle = clock.submit(_slow_square, 2)
+        assert handle.result() == 4 and handle.result() == 4
+        assert clock.workers == inner.workers and clock.describe() == inner.describe()
+    assert len(clock.seconds) == 4
+    assert all(0.05 * x <= s < 0.05 * x + 0.2 for x, s in zip([1, 3, 2, 2], clock.seconds))

@@ -101,6 +101,9 @@ class StepRecord:
     key: str
     status: str                 # "ran" or "cached"
     seconds: float
+    task_seconds: float | None = None   # a step that runs tasks of its own (the pool): their sum ...
+    tasks: int | None = None            # ... their count ...
+    longest_task_seconds: float | None = None   # ... and the longest, each timed where it ran
 
 
 def run_step(folder, key, work, records, name, echo):
@@ -465,6 +468,7 @@ def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=pr
 
 
 def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
+    from cpas_bayes.core.task_clock import TaskClock
     from cpas_bayes.outputs.report import write_report
     from cpas_bayes.stats.priors import load_test_priors
 
@@ -516,16 +520,20 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     pool_sources = {t.name: pooled_fit_folder(out, t.name) for t in tests}
     pool_key = _digest(sorted(fit_keys.items()), sorted(diag_keys.items()), config.pool_draws, config.seed)
 
+    clock = TaskClock(executor)   # what the pool spends in its own tasks can spread over workers
+
     def pool_work(tmp):
         from cpas_bayes.outputs.memo import write_pool
         from cpas_bayes.population.pool import pool_folders
 
         result = pool_folders([pool_sources[t.name] for t in tests], seed=config.seed, n_draws=config.pool_draws,
-                              executor=executor)
+                              executor=clock)
         write_pool(result, tmp, provenance={"campaign": str(folder), "tests": [t.name for t in tests],
                                             "fits": {k: str(v.relative_to(out)) for k, v in pool_sources.items()}})
     echo("memo:")
-    run_step(out / "memo", pool_key, pool_work, records, "pool", echo)
+    if run_step(out / "memo", pool_key, pool_work, records, "pool", echo) and clock.seconds:
+        records[-1] = replace(records[-1], task_seconds=sum(clock.seconds), tasks=len(clock.seconds),
+                              longest_task_seconds=max(clock.seconds))
 
     echo("Monte Carlo and load comparisons:")
     jobs = []

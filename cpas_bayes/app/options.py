@@ -36,7 +36,8 @@ from pathlib import Path
 import click
 
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.executor import MAX_LOCAL_WORKERS, SCHEDULER_FIX, scheduler_problem
+from cpas_bayes.core.executor import MAX_LOCAL_WORKERS
+from cpas_bayes.core.scheduler_address import SCHEDULER_FIX, scheduler_problem
 from cpas_bayes.core.inputs import read_toml
 from cpas_bayes.core.ownership import check_output
 from cpas_bayes.inference.stopping import STOP_RULES
