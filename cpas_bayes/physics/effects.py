@@ -159,6 +159,14 @@ def lagged_mass_rate(target_rate, t, lag):
 
 
 @numba.njit(cache=True)
+def _lag_step(g, previous_rate, rate, one_minus_a, c):
+    """Eq. A5's lag error g one step on, the target's rate going from ``previous_rate`` to ``rate`` over a step
+    Δt with 1 − a = 1 − e^(−Δt/τ_m) and c = τ_m/Δt·(1 − a): the one recursion of :func:`lagged_mass_rate`
+    and :func:`lagged_added_mass`."""
+    return (1.0 - one_minus_a) * g - previous_rate * one_minus_a - (rate - previous_rate) * (1.0 - c)
+
+
+@numba.njit(cache=True)
 def _lag_error(rate, times, lag):
     n_rows, n_chutes, n_times = rate.shape
     out = np.empty_like(rate)
@@ -175,8 +183,7 @@ def _lag_error(rate, times, lag):
                     step = t[n] - t[n - 1]
                     one_minus_a = -np.expm1(-step / tau)
                     c = tau / step * one_minus_a
-                    g = ((1.0 - one_minus_a) * g - rate[b, i, n - 1] * one_minus_a
-                         - (rate[b, i, n] - rate[b, i, n - 1]) * (1.0 - c))
+                    g = _lag_step(g, rate[b, i, n - 1], rate[b, i, n], one_minus_a, c)
                 out[b, i, n] = g
     return out
 
@@ -241,8 +248,7 @@ def _lagged_added_mass(cds, cds_rate, density, density_rate, k_a, exponent, refe
                 if n == 0 or tau <= 0.0:
                     g = -target_rate
                 else:
-                    g = ((1.0 - one_minus_a[n]) * g - previous_target_rate * one_minus_a[n]
-                         - (target_rate - previous_target_rate) * (1.0 - c[n]))
+                    g = _lag_step(g, previous_target_rate, target_rate, one_minus_a[n], c[n])
                 previous_target_rate = target_rate
                 mass[b, i, n] = target + tau * g
                 rate[b, i, n] = -g
