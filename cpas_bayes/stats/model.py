@@ -339,7 +339,11 @@ class TestModel:
         stage = self.gather_stages(theta)
         ctx = Context(self, theta, values, obs.time, stage)
         t = obs.time
-        cds, timing = self.drag_areas(stage, t)
+        if any(ext.needs_drag_area_rate for ext in self.extensions):   # one pass of the law for both
+            cds, rate, timing = self.drag_areas(stage, t, with_rate=True)
+            ctx.law = (cds, rate)
+        else:
+            cds, timing = self.drag_areas(stage, t)
         ctx.stage["timing"] = timing
         for ext in self.extensions:
             cds = ext.reshape_drag_area(ctx, cds, t)

@@ -45,6 +45,8 @@ class Context:
     values: dict                  # parameter name -> (B,) array
     time: np.ndarray              # (N,) bin times
     stage: dict = field(default_factory=dict)   # start, cds_stage, ... each (B, P, K)
+    law: tuple | None = None      # (drag areas, their rate) of the stage law at ``time``, (B, P, N) each, when a
+    #                               term needs the rate (the model computes both in one pass)
 
 
 class Extension:
@@ -62,6 +64,7 @@ class Extension:
     physical_lower_limits = ()    # parameters whose prior's lower bound is a physical limit (a lag of 0), not an edge
     needs_load_cells = False      # a term acting on load cells only does not apply without them
     needs_measured_airspeed = False   # a term built on the measured airspeed and q̄ (not on a logger bundle)
+    needs_drag_area_rate = False  # reads Context.law: the model then gives the stage law's rate with its drag areas
 
     def parameters(self, model):
         return []

@@ -71,6 +71,7 @@ class AddedMass(Extension):
     physical_lower_limits = ("mass_lag",)
     # Reads the measured airspeed, q̄ and flight-path angle (obs.*_at); a logger bundle's are the fit's own.
     needs_measured_airspeed = True
+    needs_drag_area_rate = True
 
     def parameters(self, model):
         obs = model.obs
@@ -89,7 +90,10 @@ class AddedMass(Extension):
         model, obs = ctx.model, ctx.model.obs
         v = ctx.values
         tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]      # (1 or B, 1, N)
-        cds, cds_rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)   # dCDS/dt: the law over ±1 ms
+        if ctx.law is not None and t is ctx.time:   # the model's own pass (a lagged load cell's times: not)
+            cds, cds_rate = ctx.law
+        else:   # dCDS/dt: the law over ±1 ms
+            cds, cds_rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)
         rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
         mass, rate = lagged_added_mass(cds, cds_rate, rho, np.interp(tt, obs.native_time, self._density_rate),
                                        v["k_a"], v["mass_exponent"], ctx.stage["cds_o"], tt, v["mass_lag"])
