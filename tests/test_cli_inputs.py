@@ -129,6 +129,8 @@ def bad_options(f):
         ("fit --ess-target 0", fit + ["--stop", "ess", "--ess-target", "0"], "--ess-target"),
         ("fit --ess-target beyond", fit + ["--stop", "ess", "--ess-target", "1000000"], "--ess-target"),
         ("fit --ess-target with --stop tau", fit + ["--stop", "tau", "--ess-target", "1000"], "--ess-target"),
+        ("fit --max-steps below one chunk", fit + ["--max-steps", "100"], "--max-steps"),
+        ("fit --max-steps beyond", fit + ["--max-steps", "1000000"], "--max-steps"),
         ("fit with one ensemble (the ESS rule compares them)", fit + ["--ensembles", "1"], "--ensembles"),
         ("fit --stop ess with one ensemble", fit + ["--stop", "ess", "--ensembles", "1"], "--ensembles"),
         ("fit --workers 0", fit + ["--workers", "0"], "--workers"),
@@ -649,3 +651,12 @@ def test_a_damaged_checkpoint_is_refused_with_what_to_delete(fresh, content):
     with pytest.raises(InputError) as err:
         run_ensemble(model, init, 1, SamplerOptions(max_steps=100, check_every=50), checkpoint=checkpoint)
     assert str(err.value).startswith(str(checkpoint)) and f"delete {checkpoint}" in str(err.value)
+
+
+def test_fit_max_steps_caps_every_ensemble_and_the_fit_says_it_did_not_converge(tmp_path, capsys):
+    out = tmp_path / "fit"
+    assert main(["fit", str(DROGUE), "--out", str(out), "--max-steps", "500", "--ensembles", "2", "--workers", "1"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["diagnostics"]["steps"] == [500, 500]
+    printed = capsys.readouterr().out
+    assert "NOT converged" in printed and "500 steps per ensemble" in printed

@@ -30,8 +30,8 @@ from cpas_bayes.physics.inflation import BELOW_PREVIOUS_RULES, DECAY_SHAPES
 from cpas_bayes.inference.coordinates import COORDINATES
 from cpas_bayes.inference.fit import PROPOSALS
 from cpas_bayes.inference.stopping import ESS_TARGET
-from cpas_bayes.app.options import (BATCH, ENSEMBLES, ESS_TARGETS, RUNS, SEED, STOP, WORKERS, check_scheduler,
-                                    out_option, priors_option, seed_option, stop_problem)
+from cpas_bayes.app.options import (BATCH, ENSEMBLES, ESS_TARGETS, RUNS, SEED, STEP_CAPS, STOP, WORKERS,
+                                    check_scheduler, out_option, priors_option, seed_option, stop_problem)
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
@@ -265,6 +265,9 @@ def synth_command(scenario, effect, magnitude, seed, out):
                    "autocorrelation times.")
 @click.option("--ess-target", type=ESS_TARGETS, default=None,
               help=f"With --stop ess: the bulk and tail ESS every parameter needs [default: {ESS_TARGET}].")
+@click.option("--max-steps", type=STEP_CAPS, default=20000, show_default=True,
+              help="Steps per ensemble at most: a fit that reaches it stops and says NOT converged (a cluster "
+                   "without load cells can need hours to mix between pairings).")
 @click.option("--proposal", type=click.Choice(PROPOSALS), default="adaptive", show_default=True,
               help="With --stop ess: 'adaptive' mixes in an independence move fitted to each ensemble's draws "
                    "after a warm-up (τ ~15× shorter); 'pooled' the same move fitted to all ensembles' warm-up "
@@ -273,7 +276,7 @@ def synth_command(scenario, effect, magnitude, seed, out):
               help="Where the walkers move: 'model' the parameters as written; 'drag_area' each reefed stage's "
                    "drag area ε·CDS_o in place of its ratio ε (same posterior; measured no shorter τ, README).")
 def fit_command(bundle, out, seed, priors, decay, below_previous, workers, scheduler, ensembles, stop, ess_target,
-                proposal, coordinates):
+                max_steps, proposal, coordinates):
     """Posterior of every inflation parameter of one flight test (emcee).
 
     Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
@@ -292,7 +295,8 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     test = read_bundle(bundle)
     _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
-                             ess_target=ess_target or ESS_TARGET, proposal=proposal, coordinates=coordinates)
+                             ess_target=ess_target or ESS_TARGET, proposal=proposal, coordinates=coordinates,
+                             max_steps=max_steps)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}, "
                f"stage below previous: {below_previous}")
     model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous)

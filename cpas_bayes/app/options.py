@@ -112,6 +112,7 @@ def priors_option():
 # the campaign TOML's values: field -> (type, low, high); None: no bound. Checked by load_config.
 
 MAX_STEPS = 100_000          # a fit's steps per ensemble: 5× the default; chains stay ≤ ~100 MB per ensemble
+STEP_CAPS = click.IntRange(500, MAX_STEPS)   # fit --max-steps: at least one chunk of the ESS rule
 CONFIG_LIMITS = {
     "seed": (int, 0, MAX_SEED),
     "workers": (int, 1, MAX_LOCAL_WORKERS),
