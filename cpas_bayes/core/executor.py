@@ -52,7 +52,6 @@ from cpas_bayes.core.interrupts import raise_if_requested
 from cpas_bayes.core.scheduler_address import CONNECT_TIMEOUT, SCHEDULER_FIX
 
 
-
 def _cores():
     try:
         return max(1, len(os.sched_getaffinity(0)))
@@ -88,14 +87,17 @@ class _OneThreadHere:
     spin-waiting threads then stall. Measured on 2 cores: the two-Drogue MAP
     search took 4.4 s beside one busy process with BLAS's default 2 threads,
     1.65 s with one (1.4 s alone).
+
+    ``numba=False``: BLAS alone, numba's threads (and OpenMP's) left as they are (the serial
+    executor's, :class:`Executor`).
     """
 
-    def __init__(self):
+    def __init__(self, numba=True):
         from threadpoolctl import threadpool_limits
 
-        self._limits = threadpool_limits(limits=1)
+        self._limits = threadpool_limits(limits=1, user_api=None if numba else "blas")
         self._numba = None
-        if "numba" in sys.modules:
+        if numba and "numba" in sys.modules:
             import numba
 
             self._numba = numba.get_num_threads()
@@ -216,11 +218,7 @@ class Executor:
     workers = 1
 
     def __init__(self, one_blas_thread=False):
-        self._blas = None
-        if one_blas_thread:
-            from threadpoolctl import threadpool_limits
-
-            self._blas = threadpool_limits(limits=1, user_api="blas")
+        self._blas = _OneThreadHere(numba=False) if one_blas_thread else None
 
     def map(self, fn, items, desc="tasks", progress=None, on_report=None):
         """``[fn(item) for item in items]``, with ``fn(item, report)`` when ``on_report`` is given."""
@@ -243,7 +241,7 @@ class Executor:
 
     def close(self):
         if self._blas is not None:
-            self._blas.restore_original_limits()
+            self._blas.restore()
             self._blas = None
 
     def __enter__(self):
