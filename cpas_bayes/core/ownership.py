@@ -32,6 +32,7 @@ import contextlib
 import errno
 import json
 import os
+import secrets
 from pathlib import Path
 
 from cpas_bayes.core.errors import InputError
@@ -115,16 +116,34 @@ def _marker_text(status, names=()):
 
 
 def new_marker(folder, status):
-    """Write the marker of a folder that has none (a no-op if another process just wrote one)."""
-    path = Path(folder) / MARKER
+    """Write the marker of a folder that has none (a no-op if another process just wrote one).
+
+    The marker appears whole: it is written under a temporary name and
+    hard-linked into place (a link, unlike a rename, fails if the marker
+    exists). Created empty and then filled, it could be read empty, have a
+    name appended by another process, and lose that name under the header.
+    """
+    folder = Path(folder)
+    path = folder / MARKER
+    tmp = folder / f".{MARKER}.{os.getpid()}.{secrets.token_hex(4)}{TEMP_SUFFIX}"
+    tmp.write_text(_marker_text(status), encoding="utf-8")
     try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        os.link(tmp, path)
     except FileExistsError:
-        return
-    try:
-        os.write(fd, _marker_text(status).encode("utf-8"))
+        pass
+    except OSError as exc:  # a file system without hard links: create exclusively, then fill
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EMLINK):
+            raise
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            return
+        try:
+            os.write(fd, _marker_text(status).encode("utf-8"))
+        finally:
+            os.close(fd)
     finally:
-        os.close(fd)
+        tmp.unlink(missing_ok=True)
 
 
 def rewrite_marker(folder, status, names):
