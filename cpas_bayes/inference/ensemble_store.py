@@ -39,7 +39,7 @@ def fingerprint(model, init, options):
     if options.proposal != "de" and options.stop == "ess":  # the adaptive chain depends on its chunks too
         key += [options.proposal, options.check_every, "log θ for lognormal priors"]  # the proposal's coordinates
     if exchanges_of(model):   # the chain depends on the moves
-        key.append("label exchanges")
+        key.append("label exchanges, the last stage's keeping the other stages' fill times")
     h.update(json.dumps(key).encode())
     return h.hexdigest()[:16]
 

@@ -75,7 +75,9 @@ class Exchange:
     for the rest: at a reefed stage eps_i' = eps_j·CDS_o,j/CDS_o,i, so that the stage's drag area eps·CDS_o
     changes hands, and n_p,i' = n_p,j·(CDS_o,i/CDS_o,j)^½, so that its fill time
     t_f = n·D_o·sqrt(eps·CDS_o/CDS_o)/V does too (exact at a first stage: the cluster's drag area is the
-    same until a canopy leaves it); at the last stage the other stages' eps·CDS_o stay where they were.
+    same until a canopy leaves it); at the last stage CDS_o changes hands and the other stages stay where
+    they were: eps·CDS_o kept, and n_p,i' = n_p,i·(CDS_o,j/CDS_o,i)^½ so that their fill times are kept
+    too. The exchanges of every stage of a pair, composed, are then a plain relabelling of the canopies.
     Each rescaled pair multiplies to what it was, so |∂θ'/∂θ| = 1 and the Metropolis ratio of the exchange
     is the posterior ratio alone.
     """
@@ -135,6 +137,11 @@ def stage_exchanges(parachutes, column):
                     for m, (em_i, em_j) in enumerate(eps):
                         if m != k and None not in (em_i, em_j):
                             rescale += [(em_i, em_i, ci, cj, 1.0), (em_j, em_j, cj, ci, 1.0)]
+                            # and its fill time: t_f ∝ n·sqrt(ΔCDS/CDS_o) with ΔCDS kept and CDS_o changed
+                            fm = [(column(i, f"s{m + 1}.{f}"), column(j, f"s{m + 1}.{f}")) for f in ("n_p", "n")]
+                            fm = next((c for c in fm if None not in c), None)
+                            if fm is not None:
+                                rescale += [(fm[0], fm[0], cj, ci, 0.5), (fm[1], fm[1], ci, cj, 0.5)]
                 else:
                     swaps += [c for c in ((ei, ej), fill) if c is not None and None not in c]
                 if not swaps and not rescale:
