@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from cpas_bayes.data import air_reconstruction as air
-from cpas_bayes.data.synth_logger import (draw_logger_truth, logger_streams, logger_truth_parameters,
-                                          simulate_logger_test, synthesize_logger)
+from cpas_bayes.data.synth_logger import draw_logger_truth, logger_streams, simulate_logger_test, synthesize_logger
+from cpas_bayes.data.synth_logger_truth import logger_truth_parameters
 
 
 def _noise_free(scenario, seed, **changes):

@@ -13,10 +13,10 @@ from cpas_bayes.core.units import STANDARD_GRAVITY
 from cpas_bayes.data.air_data import WindProfile
 from cpas_bayes.data.bundle import read_bundle
 from cpas_bayes.data.synth import SyntheticTruth, n_p_consistency
-from cpas_bayes.data.synth_logger import (AIR_DATA_KEYS, LOGGER_SCENARIOS, draw_logger_truth, logger_streams,
-                                          logger_truth_parameters, sample_times, simulate_logger_test,
-                                          simulate_logger_trajectory, synthesize_logger,
+from cpas_bayes.data.synth_logger import (LOGGER_SCENARIOS, draw_logger_truth, logger_streams, sample_times,
+                                          simulate_logger_test, simulate_logger_trajectory, synthesize_logger,
                                           write_logger_synthetic)
+from cpas_bayes.data.synth_logger_truth import AIR_DATA_KEYS, logger_truth_parameters
 from cpas_bayes.physics.atmosphere import standard_density
 from cpas_bayes.physics.inflation import parachute_drag_area, stage_role
 from cpas_bayes.physics.trajectory import SimulationOptions, simulate

@@ -73,14 +73,14 @@ from cpas_bayes.core.units import STANDARD_GRAVITY, unit_system
 from cpas_bayes.data.air_data import AirDataSpec, DensityProfile, WindProfile
 from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle
 from cpas_bayes.data.bundle_write import write_bundle
-from cpas_bayes.data.air_reconstruction import AIR_PARAMETERS as AIR_DATA_KEYS
 from cpas_bayes.data.synth import FIRST_START_SIGMA, LATER_START_SIGMA, ChuteTruth, StageTruth
-from cpas_bayes.data.synth_attitude import AttitudeTruth, attitude_document, draw_attitude_truth, write_body_axes
-from cpas_bayes.data.synth_logger_effects import draw_breathing, effect_fields, effect_stream
+from cpas_bayes.data.synth_attitude import AttitudeTruth, draw_attitude_truth, write_body_axes
+from cpas_bayes.data.synth_logger_effects import draw_added_mass, draw_breathing, effect_stream
 from cpas_bayes.data.synth_logger_scenarios import (ACCEL_BIAS_SIGMA, ACCEL_NOISE, ACCEL_RATES, ACCEL_SCALE_SIGMA,
                                                     ALTITUDE_SIGMA, DENSITY_GRID, GNSS_RATES, GNSS_SIGMA_H,
                                                     GNSS_SIGMA_V, LATENCY, SCENARIOS, WIND_LEVELS, WIND_LIMIT,
                                                     WIND_SHEAR, WIND_SIGMA)
+from cpas_bayes.data.synth_logger_truth import logger_truth_document, sample_times
 from cpas_bayes.physics.atmosphere import standard_density
 from cpas_bayes.physics.inflation import below_previous_code, decay_code, parachute_drag_area, parachute_stage_law
 
@@ -88,6 +88,7 @@ LOGGER_SCENARIOS = ("logger-drop", "logger-drogue", "logger-main", "logger-attit
 SI = unit_system("SI")
 G0 = STANDARD_GRAVITY
 DECAY, BELOW_PREVIOUS = "linear", "drop"   # the stage-law options synth.py simulates with
+ADDED_MASS_STEP = 1e-4                     # s, half the span of dCDS/dt's central difference (added mass)
 MAX_STEP = 1e-3                            # s, RK4 step bound (halving it moves the peak G by < 0.1 %)
 
 
@@ -124,6 +125,7 @@ class LoggerTruth:
     # Canopy breathing after each stage's peak (effects.breathing_factor): amplitude, Hz, damping ratio;
     # amplitude 0 is none.
     breathing: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    added_mass: float = 0.0      # k_a of Eq. A1 flown in the dynamics (synth_logger_effects); 0 is none
 
     @property
     def total_weight(self):
@@ -217,21 +219,37 @@ def _drag(t, y, v_start, law, body, dy, cds, scratch):
 
     ``law`` = (stage_par (6, P, K), chute_par (2, P), n_stages (P,), option codes (2,)) as made by
     :func:`_stage_arrays`; ``body`` = (log ρ every DENSITY_GRID m, wind table (3, L), [h of the first
-    log ρ, mass, CDS_V]).
+    log ρ, mass, CDS_V, breathing amplitude, Hz and damping ratio, added-mass k_a]).
     """
     stage_par, chute_par, n_stages, codes = law
     log_rho, wind, constants = body
     rho_base, mass, cds_v = constants[0], constants[1], constants[2]
     amplitude, omega, damping = constants[3], 2.0 * math.pi * constants[4], constants[5]
+    k_a = constants[6]
     total = cds_v
+    x = min(max((y[2] - rho_base) / DENSITY_GRID, 0.0), log_rho.shape[0] - 1.000001)
+    i = int(x)
+    rho = math.exp(log_rho[i] + (x - i) * (log_rho[i + 1] - log_rho[i]))
+    m_a, m_a_rate = 0.0, 0.0
     for p in range(cds.shape[0]):
+        points = 1 if k_a == 0.0 else 3    # with added mass also t ∓ δ: dCDS/dt by central difference
         scratch[0, 0] = t
-        scratch[1, 0] = 0.0   # the stage law writes only bins inside a stage
-        parachute_stage_law(scratch[0, :1], stage_par[0, p], stage_par[1, p], chute_par[0, p], chute_par[1, p],
-                            stage_par[2, p], stage_par[3, p], stage_par[4, p], stage_par[5, p], v_start[p],
-                            n_stages[p], codes[0], codes[1], True, True, scratch[1, :1], scratch[2], scratch[3],
-                            scratch[4], scratch[5])
-        cds[p] = scratch[1, 0]
+        if points == 3:
+            scratch[0, 0], scratch[0, 1], scratch[0, 2] = t - ADDED_MASS_STEP, t, t + ADDED_MASS_STEP
+        scratch[1, :points] = 0.0   # the stage law writes only bins inside a stage
+        parachute_stage_law(scratch[0, :points], stage_par[0, p], stage_par[1, p], chute_par[0, p],
+                            chute_par[1, p], stage_par[2, p], stage_par[3, p], stage_par[4, p], stage_par[5, p],
+                            v_start[p], n_stages[p], codes[0], codes[1], True, True, scratch[1, :points],
+                            scratch[2], scratch[3], scratch[4], scratch[5])
+        if points == 1:
+            cds[p] = scratch[1, 0]
+        else:
+            area = max(scratch[1, 1], 0.0)
+            cds[p] = scratch[1, 1]
+            rate = (scratch[1, 2] - scratch[1, 0]) / (2.0 * ADDED_MASS_STEP)
+            rho_rate = rho * (log_rho[i + 1] - log_rho[i]) / DENSITY_GRID * y[5]
+            m_a += k_a * rho * area**1.5
+            m_a_rate += k_a * (rho_rate * area**1.5 + 1.5 * rho * math.sqrt(area) * rate)
         if amplitude != 0.0:   # breathing: τ from the peak (start + t_fp, scratch[3]) of the active stage
             active = -1
             for k in range(n_stages[p]):
@@ -247,9 +265,6 @@ def _drag(t, y, v_start, law, body, dy, cds, scratch):
     vae = y[4] - np.interp(y[2], wind[0], wind[2])
     vau = y[5]
     speed = math.sqrt(van * van + vae * vae + vau * vau)
-    x = min(max((y[2] - rho_base) / DENSITY_GRID, 0.0), log_rho.shape[0] - 1.000001)
-    i = int(x)
-    rho = math.exp(log_rho[i] + (x - i) * (log_rho[i + 1] - log_rho[i]))
     drag = 0.5 * rho * speed * speed * total
     per_speed = drag / (mass * speed) if speed > 0.0 else 0.0
     dy[0], dy[1], dy[2] = y[3], y[4], y[5]
@@ -257,6 +272,15 @@ def _drag(t, y, v_start, law, body, dy, cds, scratch):
     dy[4] = -per_speed * vae
     dy[5] = -per_speed * vau - G0
     dy[6] = drag / (mass * G0)
+    if m_a > 0.0 and speed > 0.0:
+        # Eq. A3 along the air velocity; the sensed force gains the momentum term d(m_a·V)/dt
+        sin_gamma = vau / speed
+        along = (-drag - mass * G0 * sin_gamma - speed * m_a_rate) / (mass + m_a)
+        change = along - (-drag / mass - G0 * sin_gamma)
+        dy[3] += change * van / speed
+        dy[4] += change * vae / speed
+        dy[5] += change * vau / speed
+        dy[6] = (drag + speed * m_a_rate + m_a * along) / (mass * G0)
     return dy[6]
 
 
@@ -283,7 +307,7 @@ def _integrate(h, n_steps, y0, v_start, law, body):
         for k in range(n_stages[p]):
             v_start[p, k] = _airspeed(y0, wind)   # placeholder until recorded: never 0 (t_f divides by it)
             recorded[p, k] = stage_par[0, p, k] <= 0.0
-    y, dy, cds, scratch = y0.copy(), np.empty(7), np.empty(P), np.zeros((6, max(K, 1)))
+    y, dy, cds, scratch = y0.copy(), np.empty(7), np.empty(P), np.zeros((6, max(K, 3)))
     k1, k2, k3, k4, tmp = np.empty(7), np.empty(7), np.empty(7), np.empty(7), np.empty(7)
     for n in range(n_steps + 1):
         t = n * h
@@ -410,7 +434,8 @@ def simulate_logger_trajectory(truth: LoggerTruth, step: float = MAX_STEP) -> Lo
     v_start = np.zeros(stage_par.shape[1:])
     codes = np.array([decay_code(DECAY), below_previous_code(BELOW_PREVIOUS)], dtype=np.int64)
     mass = truth.total_weight / G0
-    body = (np.log(rho), wind_table, np.array([heights[0], mass, truth.vehicle_cds, *truth.breathing]))
+    body = (np.log(rho), wind_table, np.array([heights[0], mass, truth.vehicle_cds, *truth.breathing,
+                                               truth.added_mass]))
     states, rates, load, drag_areas = _integrate(h, n_steps, y0, v_start, (stage_par, chute_par, n_stages, codes),
                                                  body)
     time = h * np.arange(n_steps + 1)
@@ -429,18 +454,6 @@ def simulate_logger_trajectory(truth: LoggerTruth, step: float = MAX_STEP) -> Lo
 # ---------------------------------------------------------------------------
 # the logged record
 
-def _sample_times(rate, first, duration):
-    """k/rate for k from the first k with k/rate ≥ first to the last inside the record."""
-    k = np.arange(math.ceil(first * rate - 1e-9), math.floor(duration * rate + 1e-9) + 1)
-    return k / rate
-
-
-def sample_times(truth: LoggerTruth):
-    """(accelerometer times, GNSS times), s: j/r_a for j ≥ 1; k/r_g once t − latency ≥ 0."""
-    return (_sample_times(truth.accel_rate, 1.0 / truth.accel_rate, truth.duration),
-            _sample_times(truth.gnss_rate, truth.gnss_latency, truth.duration))
-
-
 def _stated_stages(chute, rng, first_row, last_row):
     stages, previous = [], -math.inf
     for k, s in enumerate(chute.stages):
@@ -450,48 +463,6 @@ def _stated_stages(chute, rng, first_row, last_row):
         stages.append(Stage(label=s.label, start=start, start_sigma=sigma))
         previous = start
     return tuple(stages)
-
-
-def first_reading_state(truth: LoggerTruth, trajectory: LoggerTrajectory) -> dict:
-    """The air-relative state at the first accelerometer reading: where the fit's air parameters are defined."""
-    t0 = sample_times(truth)[0][:1]
-    position, velocity = trajectory.state_at(t0)
-    wind = np.array([np.interp(t0[0], trajectory.time, trajectory.wind[:, i]) for i in range(2)] + [0.0])
-    va = velocity[0] - wind
-    speed = float(np.linalg.norm(va))
-    return {"time": float(t0[0]), "airspeed": speed, "flight_path_angle": math.degrees(math.asin(va[2] / speed)),
-            "heading": math.degrees(math.atan2(va[1], va[0])), "altitude": float(position[0, 2])}
-
-
-def logger_truth_document(truth: LoggerTruth, trajectory: LoggerTrajectory) -> dict:
-    """truth.json: synth's layout (SI, the bundle's units) plus the ``air_data`` table.
-
-    ``air_data`` holds the release state (``airspeed_0`` ... at time 0) and, under
-    ``first_reading``, the state at the first accelerometer reading, which is
-    what the fit's air parameters of the same names describe."""
-    chutes, peak_total = [], np.zeros(len(trajectory.time))
-    qbar = trajectory.qbar
-    for p, c in enumerate(truth.chutes):
-        tension = qbar * trajectory.cds[p] - c.weight * trajectory.load_factor   # riser tension (Eq. 10)
-        peak_total = peak_total + tension
-        stages = [{"eps": s.eps, "start": s.start, "n": float(trajectory.timing[p].n[k]), "n_p": s.n_p,
-                   "expopen": s.expopen, "ck": s.ck, "tk": s.tk, "cds_end": s.eps * c.cds_o,
-                   "airspeed_start": float(trajectory.stage_airspeed[p, k])} for k, s in enumerate(c.stages)]
-        chutes.append({"id": c.id, "cds_o": c.cds_o, "stages": stages, "peak_load": float(tension.max())})
-    w = truth.wind
-    air = {"airspeed_0": truth.airspeed_0, "flight_path_angle_0": truth.flight_path_angle_0,
-           "heading_0": truth.heading_0, "altitude_0": truth.altitude_0, "wind_north": truth.wind_north,
-           "wind_east": truth.wind_east, "accel_scale": truth.accel_scale, "accel_bias": truth.accel_bias,
-           "gnss_latency": truth.gnss_latency, "accel_rate": truth.accel_rate, "gnss_rate": truth.gnss_rate,
-           "accel_sigma": truth.accel_sigma, "gnss_sigma_horizontal": truth.gnss_sigma_horizontal,
-           "gnss_sigma_up": truth.gnss_sigma_up, "altitude_sigma": truth.altitude_sigma,
-           "wind_sigma": float(w.sigma), "first_reading": first_reading_state(truth, trajectory),
-           "stated_wind": {"altitude": [float(v) for v in w.altitude], "north": [float(v) for v in w.north],
-                           "east": [float(v) for v in w.east]}}
-    return {"scenario": truth.scenario, "units": "SI", **effect_fields(truth.breathing),
-            "vehicle_weight": truth.vehicle_weight, "vehicle_cds": truth.vehicle_cds,
-            "chutes": chutes, "peak_total_load": float(peak_total.max()), "air_data": air,
-            **attitude_document(truth.attitude)}
 
 
 def simulate_logger_test(truth: LoggerTruth, rng: np.random.Generator, name: str | None = None,
@@ -562,7 +533,7 @@ def synthesize_logger(scenario: str, seed: int, name: str | None = None, effect:
     truth_rng, noise_rng = logger_streams(seed)
     truth = draw_logger_truth(scenario, truth_rng)
     breathing = draw_breathing(effect, scenario, truth.chutes[0].diameter, effect_stream(seed), magnitude)
-    truth = replace(truth, breathing=breathing)
+    truth = replace(truth, breathing=breathing, added_mass=draw_added_mass(effect, effect_stream(seed), magnitude))
     suffix = "" if effect == "none" else f"-{effect}"
     return simulate_logger_test(truth, noise_rng, name=name or f"SYN-{scenario}-{seed}{suffix}")
 
@@ -571,23 +542,3 @@ def write_logger_synthetic(scenario: str, seed: int, out, effect: str = "none", 
     """Simulate a logger test and write it as a bundle with its truth.json beside it; returns the folder."""
     test, truth = synthesize_logger(scenario, seed, effect=effect, magnitude=magnitude)
     return write_bundle(test, Path(out), extra_files={"truth.json": json.dumps(truth, indent=1) + "\n"})
-
-
-def logger_truth_parameters(truth_doc: dict) -> dict:
-    """The truth under the model's parameter names, SI (truth.json of a logger test is SI).
-
-    Air data: ``airspeed_0, flight_path_angle_0, heading_0, altitude_0, wind_north, wind_east,
-    accel_scale, accel_bias, gnss_latency``; ``vehicle_weight``, ``vehicle_cds``; per canopy
-    ``<id>.cds_o`` and ``<id>.s<k>.{start,n_p,expopen,ck,tk,eps}`` (k 1-based).
-    """
-    out = {key: float(truth_doc["air_data"][key]) for key in AIR_DATA_KEYS}
-    first = truth_doc["air_data"]["first_reading"]
-    for key in ("airspeed", "flight_path_angle", "heading", "altitude"):
-        out[f"{key}_0"] = float(first[key])
-    out["vehicle_weight"], out["vehicle_cds"] = float(truth_doc["vehicle_weight"]), float(truth_doc["vehicle_cds"])
-    for c in truth_doc["chutes"]:
-        out[f"{c['id']}.cds_o"] = float(c["cds_o"])
-        for k, s in enumerate(c["stages"]):
-            for name in ("start", "n_p", "expopen", "ck", "tk", "eps"):
-                out[f"{c['id']}.s{k + 1}.{name}"] = float(s[name])
-    return out

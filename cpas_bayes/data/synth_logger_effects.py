@@ -1,11 +1,18 @@
 """Hidden effects of the synthetic logger tests (:mod:`cpas_bayes.data.synth_logger`).
 
-One effect so far, ``canopy_breathing``: every canopy's drag area is multiplied
-after its current stage's peak by :func:`cpas_bayes.physics.effects.breathing_factor`
-(amplitude A, frequency f, damping ratio ζ; one set for the test), inside the
-integration, so the trajectory, the accelerometer and the receiver all see it.
-That is the form of the diagnosis's ``canopy_breathing`` term, and of the
-breathing in :mod:`cpas_bayes.data.synth`.
+``canopy_breathing``: every canopy's drag area is multiplied after its current
+stage's peak by :func:`cpas_bayes.physics.effects.breathing_factor` (amplitude A,
+frequency f, damping ratio ζ; one set for the test), inside the integration, so
+the trajectory, the accelerometer and the receiver all see it. That is the form
+of the diagnosis's ``canopy_breathing`` term, and of the breathing in
+:mod:`cpas_bayes.data.synth`.
+
+``added_mass``: each canopy carries the air mass m_a = k_a·ρ·CDS^(3/2) (the
+seed's Eq. A1, no lag), and the flight's momentum balance along the air
+velocity is Eq. A3, (M + m_a)·dV/dt = −D − M·g·sin γ − V·dm_a/dt, integrated in
+3-D (the part across the air velocity is as without it); the accelerometer
+senses (D + V·dm_a/dt + m_a·dV/dt)/M. dCDS/dt is the stage law's central
+difference over ±0.1 ms. k_a ~ U(0.2, 1.0) or the magnitude given.
 
 Draws: A ~ U(0.03, 0.10) (or the magnitude given), ζ ~ U(0.05, 0.3), f ~ U over
 the kind's range: Drogues 0.8–2 Hz, Mains of the Main scenario 0.2–0.6 Hz, and
@@ -18,7 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
-LOGGER_EFFECTS = ("none", "canopy_breathing")
+LOGGER_EFFECTS = ("none", "canopy_breathing", "added_mass")
+ADDED_MASS_K = (0.2, 1.0)
+ADDED_MASS_LIMITS = (0.0, 5.0)     # k_a a magnitude may give, as synth's
 BREATHING_AMPLITUDE = (0.03, 0.10)
 BREATHING_DAMPING = (0.05, 0.3)
 BREATHING_HZ = {"logger-drogue": (0.8, 2.0), "logger-main": (0.2, 0.6)}
@@ -40,6 +49,8 @@ def draw_breathing(effect: str, scenario: str, diameter: float, rng: np.random.G
         if magnitude is not None:
             raise ValueError("a magnitude needs an effect other than 'none'")
         return NO_BREATHING
+    if effect != "canopy_breathing":
+        return NO_BREATHING
     amplitude = float(rng.uniform(*BREATHING_AMPLITUDE)) if magnitude is None else float(magnitude)
     if not 0.0 < amplitude < 1.0:
         raise ValueError(f"the breathing amplitude must lie in (0, 1), got {amplitude}")
@@ -48,8 +59,23 @@ def draw_breathing(effect: str, scenario: str, diameter: float, rng: np.random.G
     return amplitude, frequency, float(rng.uniform(*BREATHING_DAMPING))
 
 
-def effect_fields(breathing) -> dict:
+def draw_added_mass(effect: str, rng: np.random.Generator, magnitude=None) -> float:
+    """k_a of ``effect`` (0 unless it is ``added_mass``)."""
+    if effect != "added_mass":
+        return 0.0
+    k_a = float(rng.uniform(*ADDED_MASS_K)) if magnitude is None else float(magnitude)
+    low, high = ADDED_MASS_LIMITS
+    if not low < k_a <= high:
+        raise ValueError(f"the added-mass k_a must lie in ({low:g}, {high:g}], got {k_a}")
+    return k_a
+
+
+def effect_fields(breathing, added_mass=0.0) -> dict:
     """truth.json's effect keys (the layout of :mod:`cpas_bayes.data.synth`'s truth)."""
+    if added_mass > 0.0:
+        params = {"magnitude": added_mass, "k_a": added_mass}
+        return {"effect": "added_mass", "effect_params": params, "effects": {"added_mass": params},
+                "cause": "added_mass", "causes": ["added_mass"]}
     amplitude, frequency, damping = breathing
     if amplitude == 0.0:
         return {"effect": "none", "effect_params": {}, "effects": {}, "cause": "none", "causes": []}

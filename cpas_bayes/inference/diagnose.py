@@ -470,7 +470,7 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     skipped = [n for n in options.candidates if n in PHYSICAL and n not in terms]
     if skipped:
         why = ("they act on load cells, and the test has none" if test.measured_qbar else
-               "a logger bundle has no load cells, and the added mass reads a measured q̄")
+               "they act on load cells, which a logger bundle has none of")
         warnings.append(f"not tried: {', '.join(skipped)} ({why})")
     generic = [n for n in options.candidates if n not in PHYSICAL and n != DISCREPANCY]
 

@@ -40,15 +40,16 @@ one, and the prediction is mapped by the same fixed affine transform; q̄_ref
 sets the units of that view, not the fit.
 
 Extensions. A term that reshapes the drag area (canopy breathing) acts on the
-averaging nodes of step 3. A term with its own error model (the generic
-discrepancy, AR(1) errors) acts on the bins given the receiver: their
-residuals are whitened with the Cholesky factor of that conditional
-covariance, z = L_gg⁻¹·(reading residual)/λ, so z_i is the innovation of bin i
-given the receiver and the bins before it and Σ z_i² is the bins' part of the
-joint. The pointwise log-likelihood (PSIS-LOO, model comparison) is these
+averaging nodes of step 3, and so does the added mass: its apparent drag area
+d(m_a·V)/dt/q̄ reads each walker's reconstructed ρ, V, q̄ and γ at the nodes
+(``Context.air``) where a bundle with a q̄ channel gives the measured ones. A
+term with its own error model (the generic discrepancy, AR(1) errors) acts on
+the bins given the receiver: their residuals are whitened with the Cholesky
+factor of that conditional covariance, z = L_gg⁻¹·(reading residual)/λ, so
+z_i is the innovation of bin i given the receiver and the bins before it and
+Σ z_i² is the bins' part of the joint. The pointwise log-likelihood (PSIS-LOO, model comparison) is these
 sequential conditionals, in reading units; the receiver's part is common to
-every bin and left out of it. Terms on the load cells and the added mass (it
-reads a measured airspeed and q̄) do not apply.
+every bin and left out of it. Terms on the load cells do not apply.
 """
 
 from __future__ import annotations
@@ -207,7 +208,8 @@ class LoggerModel(TestModel):
             if ext.needs_load_cells or ext.needs_measured_airspeed:
                 what = "the load cells" if ext.needs_load_cells else "a measured airspeed and q̄"
                 raise ValueError(f"the {ext.name} term needs {what}, which a logger bundle does not have; "
-                                 "leave it out (canopy_breathing, discrepancy and correlated_noise apply)")
+                                 "leave it out (added_mass, canopy_breathing, discrepancy and correlated_noise "
+                                 "apply)")
         self.channels = air.logger_channels(test)
         self.air_estimate = estimate if estimate is not None else air.best_estimate_trajectory(test)
         self._air_priors = self.air_estimate.priors
@@ -281,15 +283,28 @@ class LoggerModel(TestModel):
         right, w = self._node_right, self._node_frac
         speed, rho = tr.airspeed, self.channels.density(tr.altitude)
         v_node = speed[:, right - 1] + w * (speed[:, right] - speed[:, right - 1]) + self._node_speed_bend
-        q_node = 0.5 * (rho[:, right - 1] + w * (rho[:, right] - rho[:, right - 1])) * v_node**2
-        cds, timing = self.drag_areas(stage, self.bins.node_time)
+        rho_node = rho[:, right - 1] + w * (rho[:, right] - rho[:, right - 1])
+        q_node = 0.5 * rho_node * v_node**2
+        nodes = self.bins.node_time
         if self.extensions:
+            ctx = Context(self, theta, values, nodes, stage)
+            if any(ext.needs_drag_area_rate for ext in self.extensions):   # one pass of the law for both
+                cds, rate, timing = self.drag_areas(stage, nodes, with_rate=True)
+                ctx.law = (cds, rate)
+            else:
+                cds, timing = self.drag_areas(stage, nodes)
             stage["timing"] = timing
-            ctx = Context(self, theta, values, self.bins.node_time, stage)
+            if any(ext.reads_air_data for ext in self.extensions):
+                ctx.air = self._node_air(tr, right, w, rho_node, v_node, q_node)
             for ext in self.extensions:
-                cds = ext.reshape_drag_area(ctx, cds, self.bins.node_time)
+                cds = ext.reshape_drag_area(ctx, cds, nodes)
+            apparent = self._apparent(ctx, nodes)   # the added mass' d(m_a·V)/dt/q̄, seen by the accelerometer
+            seen = cds if apparent is None else cds + apparent
+        else:
+            cds, timing = self.drag_areas(stage, nodes)
+            seen = cds
         total_weight = values["vehicle_weight"] + self.chute_weight.sum()
-        g_node = q_node * (cds.sum(axis=1) + values["vehicle_cds"][:, None]) / total_weight[:, None]
+        g_node = q_node * (seen.sum(axis=1) + values["vehicle_cds"][:, None]) / total_weight[:, None]
         weight, first = self.bins.node_weight, self.bins.first_node
         g_mean = np.add.reduceat(g_node * weight, first, axis=1)
         reading = values["accel_scale"][:, None] * g_mean + values["accel_bias"][:, None]
@@ -303,6 +318,20 @@ class LoggerModel(TestModel):
         pred = Prediction(acc=acc, lc=np.empty((B, 0, N)), cds=cds_mean,
                           timing=timing, noise_acc=values["noise_acc"], noise_lc=np.ones(B))
         return pred, z_r.T
+
+    def _node_air(self, tr, right, w, rho, v_node, q_node):
+        """(ρ, V, q̄, γ, dρ/dt) at the averaging nodes, (B, 1, N) each, from each walker's reconstruction:
+        what a term reading the air data (the added mass) sees in place of measured channels.
+        dρ/dt = dρ/dh·dh/dt, the climb rate being the air velocity's up part (the wind is horizontal)."""
+        def at_nodes(x):
+            return x[:, right - 1] + w * (x[:, right] - x[:, right - 1])
+
+        climb = at_nodes(tr.air_velocity[..., 2])
+        h = at_nodes(tr.altitude)
+        step = 1.0   # m: the density table is piecewise linear in altitude, far coarser than this
+        rho_rate = (self.channels.density(h + step) - self.channels.density(h - step)) / (2 * step) * climb
+        gamma = np.arcsin(np.clip(climb / np.maximum(v_node, 1e-9), -1.0, 1.0))
+        return tuple(x[:, None, :] for x in (rho, v_node, q_node, gamma, rho_rate))
 
     def predict(self, theta):
         return self._predict(theta)[0]

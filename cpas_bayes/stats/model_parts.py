@@ -47,6 +47,8 @@ class Context:
     stage: dict = field(default_factory=dict)   # start, cds_stage, ... each (B, P, K)
     law: tuple | None = None      # (drag areas, their rate) of the stage law at ``time``, (B, P, N) each, when a
     #                               term needs the rate (the model computes both in one pass)
+    air: tuple | None = None      # (ρ, V, q̄, γ rad, dρ/dt) at ``time``, (B, 1, N) each, where the air data are
+    #                               the fit's own (a logger bundle's reconstruction, per walker); None: measured
 
 
 class Extension:
@@ -64,6 +66,7 @@ class Extension:
     physical_lower_limits = ()    # parameters whose prior's lower bound is a physical limit (a lag of 0), not an edge
     needs_load_cells = False      # a term acting on load cells only does not apply without them
     needs_measured_airspeed = False   # a term built on the measured airspeed and q̄ (not on a logger bundle)
+    reads_air_data = False        # reads ρ, V, q̄, γ at the bins: a logger model then gives its walkers' (Context.air)
     needs_drag_area_rate = False  # reads Context.law: the model then gives the stage law's rate with its drag areas
 
     def parameters(self, model):

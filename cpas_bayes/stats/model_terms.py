@@ -69,8 +69,8 @@ class AddedMass(Extension):
     name = "added_mass"
     practical_floor = ("k_a", 0.05)   # below: < 1/4 of the smallest added mass the Drogue tests suggest
     physical_lower_limits = ("mass_lag",)
-    # Reads the measured airspeed, q̄ and flight-path angle (obs.*_at); a logger bundle's are the fit's own.
-    needs_measured_airspeed = True
+    # Reads the air data at the bins: measured (obs.*_at), or on a logger bundle each walker's reconstruction.
+    reads_air_data = True
     needs_drag_area_rate = True
 
     def parameters(self, model):
@@ -94,15 +94,19 @@ class AddedMass(Extension):
             cds, cds_rate = ctx.law
         else:   # dCDS/dt: the law over ±1 ms
             cds, cds_rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)
-        rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
-        mass, rate = lagged_added_mass(cds, cds_rate, rho, np.interp(tt, obs.native_time, self._density_rate),
-                                       v["k_a"], v["mass_exponent"], ctx.stage["cds_o"], tt, v["mass_lag"])
+        if ctx.air is not None and t is ctx.time:   # a logger bundle: each walker's reconstructed flight
+            rho, speed, qbar, gamma, rho_rate = ctx.air
+        else:
+            rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
+            gamma, rho_rate = obs.gamma_at(tt), np.interp(tt, obs.native_time, self._density_rate)
+        mass, rate = lagged_added_mass(cds, cds_rate, rho, rho_rate, v["k_a"], v["mass_exponent"],
+                                       ctx.stage["cds_o"], tt, v["mass_lag"])
         # dV/dt from the system's momentum balance (effects Eq. A3) with the model's own
         # drag areas: differencing the measured airspeed would turn its noise into
         # m_a·dV/dt errors far larger than the effect on a Main.
         total_weight = (v["vehicle_weight"] + model.chute_weight.sum())[:, None]
         accel = added_mass_acceleration(qbar[:, 0], cds.sum(axis=1), v["vehicle_cds"][:, None],
-                                        total_weight, obs.gamma_at(tt)[:, 0], speed[:, 0], mass.sum(axis=1),
+                                        total_weight, gamma[:, 0], speed[:, 0], mass.sum(axis=1),
                                         rate.sum(axis=1), STANDARD_GRAVITY)
         return added_mass_momentum_rate(mass, rate, speed, accel[:, None, :]) / qbar
 
@@ -228,8 +232,7 @@ PHYSICAL = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
 
 def applies(name, test):
-    """Whether term ``name`` can act on the channels ``test`` has (load-cell terms need load cells, the
-    added mass a measured q̄)."""
+    """Whether term ``name`` can act on the channels ``test`` has (load-cell terms need load cells)."""
     term = EXTENSIONS[name]
     if term.needs_measured_airspeed and not test.measured_qbar:
         return False
