@@ -230,6 +230,7 @@ def _drag(t, y, v_start, law, body, dy, cds, scratch):
     x = min(max((y[2] - rho_base) / DENSITY_GRID, 0.0), log_rho.shape[0] - 1.000001)
     i = int(x)
     rho = math.exp(log_rho[i] + (x - i) * (log_rho[i + 1] - log_rho[i]))
+    rho_rate = rho * (log_rho[i + 1] - log_rho[i]) / DENSITY_GRID * y[5]   # dρ/dh · dh/dt
     m_a, m_a_rate = 0.0, 0.0
     for p in range(cds.shape[0]):
         points = 1 if k_a == 0.0 else 3    # with added mass also t ∓ δ: dCDS/dt by central difference
@@ -247,7 +248,6 @@ def _drag(t, y, v_start, law, body, dy, cds, scratch):
             area = max(scratch[1, 1], 0.0)
             cds[p] = scratch[1, 1]
             rate = (scratch[1, 2] - scratch[1, 0]) / (2.0 * ADDED_MASS_STEP)
-            rho_rate = rho * (log_rho[i + 1] - log_rho[i]) / DENSITY_GRID * y[5]
             m_a += k_a * rho * area**1.5
             m_a_rate += k_a * (rho_rate * area**1.5 + 1.5 * rho * math.sqrt(area) * rate)
         if amplitude != 0.0:   # breathing: τ from the peak (start + t_fp, scratch[3]) of the active stage

@@ -119,14 +119,16 @@ def stage_exchanges(parachutes, column):
                 continue
             ci, cj = column(i, "cds_o"), column(j, "cds_o")
             eps = [(column(i, f"s{m + 1}.eps"), column(j, f"s{m + 1}.eps")) for m in range(len(p.stages))]
+            # each stage's fill constant (n_p, or n in the other parameterisation), a column of each or None
+            fills = [next((c for c in ((column(i, f"s{m + 1}.{f}"), column(j, f"s{m + 1}.{f}")) for f in ("n_p", "n"))
+                           if None not in c), None) for m in range(len(p.stages))]
             for k in range(len(p.stages)):
                 swaps = [(column(i, f"s{k + 1}.{f}"), column(j, f"s{k + 1}.{f}"))
                          for f in ("start", "expopen", "ck", "tk")]
                 swaps = [s for s in swaps if None not in s]
                 rescale = []                       # (dst, src, num, den, power)
                 ei, ej = eps[k]
-                fill = [(column(i, f"s{k + 1}.{f}"), column(j, f"s{k + 1}.{f}")) for f in ("n_p", "n")]
-                fill = next((c for c in fill if None not in c), None)
+                fill = fills[k]
                 has_cds_o = None not in (ci, cj)
                 if has_cds_o and None not in (ei, ej):     # reefed: eps·CDS_o and the fill time change hands
                     rescale += [(ei, ej, cj, ci, 1.0), (ej, ei, ci, cj, 1.0)]
@@ -138,8 +140,7 @@ def stage_exchanges(parachutes, column):
                         if m != k and None not in (em_i, em_j):
                             rescale += [(em_i, em_i, ci, cj, 1.0), (em_j, em_j, cj, ci, 1.0)]
                             # and its fill time: t_f ∝ n·sqrt(ΔCDS/CDS_o) with ΔCDS kept and CDS_o changed
-                            fm = [(column(i, f"s{m + 1}.{f}"), column(j, f"s{m + 1}.{f}")) for f in ("n_p", "n")]
-                            fm = next((c for c in fm if None not in c), None)
+                            fm = fills[m]
                             if fm is not None:
                                 rescale += [(fm[0], fm[0], cj, ci, 0.5), (fm[1], fm[1], ci, cj, 0.5)]
                 else:

@@ -82,7 +82,8 @@ class ReadingBins:
     """How the model averages over each bin of readings: Gauss–Legendre nodes over the span the bin averages.
 
     A bin of m consecutive readings (interval Δ each) is their mean, which equals the mean of the
-    sensed load factor over their joint span (t_first − Δ, t_last]; M = ⌈span/10 ms⌉ nodes cover it.
+    sensed load factor over their joint span (t_first − Δ, t_last]; M = ⌈span/10 ms⌉ nodes cover it,
+    ⌈span/2 ms⌉ where the load is high (:data:`FINE_STEP`).
     """
 
     node_time: np.ndarray     # (K,) s, increasing
@@ -213,9 +214,8 @@ class LoggerModel(TestModel):
     def __init__(self, test: FlightTest, kind_priors: dict, nuisance, decay="linear", extensions=(),
                  cluster="individual", below_previous="drop", estimate=None):
         for ext in extensions:
-            if ext.needs_load_cells or ext.needs_measured_airspeed:
-                what = "the load cells" if ext.needs_load_cells else "a measured airspeed and q̄"
-                raise ValueError(f"the {ext.name} term needs {what}, which a logger bundle does not have; "
+            if ext.needs_load_cells:
+                raise ValueError(f"the {ext.name} term needs the load cells, which a logger bundle does not have; "
                                  "leave it out (added_mass, canopy_breathing, discrepancy and correlated_noise "
                                  "apply)")
         self.channels = air.logger_channels(test)
@@ -293,24 +293,10 @@ class LoggerModel(TestModel):
         v_node = speed[:, right - 1] + w * (speed[:, right] - speed[:, right - 1]) + self._node_speed_bend
         rho_node = rho[:, right - 1] + w * (rho[:, right] - rho[:, right - 1])
         q_node = 0.5 * rho_node * v_node**2
-        nodes = self.bins.node_time
-        if self.extensions:
-            ctx = Context(self, theta, values, nodes, stage)
-            if any(ext.needs_drag_area_rate for ext in self.extensions):   # one pass of the law for both
-                cds, rate, timing = self.drag_areas(stage, nodes, with_rate=True)
-                ctx.law = (cds, rate)
-            else:
-                cds, timing = self.drag_areas(stage, nodes)
-            stage["timing"] = timing
-            if any(ext.reads_air_data for ext in self.extensions):
-                ctx.air = self._node_air(tr, right, w, rho_node, v_node, q_node)
-            for ext in self.extensions:
-                cds = ext.reshape_drag_area(ctx, cds, nodes)
-            apparent = self._apparent(ctx, nodes)   # the added mass' d(m_a·V)/dt/q̄, seen by the accelerometer
-            seen = cds if apparent is None else cds + apparent
-        else:
-            cds, timing = self.drag_areas(stage, nodes)
-            seen = cds
+        ctx = Context(self, theta, values, self.bins.node_time, stage)
+        if any(ext.reads_air_data for ext in self.extensions):
+            ctx.air = self._node_air(tr, right, w, rho_node, v_node, q_node)
+        cds, seen, timing = self._extended_drag_areas(ctx)   # seen: with the added mass' d(m_a·V)/dt/q̄
         total_weight = values["vehicle_weight"] + self.chute_weight.sum()
         g_node = q_node * (seen.sum(axis=1) + values["vehicle_cds"][:, None]) / total_weight[:, None]
         weight, first = self.bins.node_weight, self.bins.first_node

@@ -339,16 +339,7 @@ class TestModel:
         stage = self.gather_stages(theta)
         ctx = Context(self, theta, values, obs.time, stage)
         t = obs.time
-        if any(ext.needs_drag_area_rate for ext in self.extensions):   # one pass of the law for both
-            cds, rate, timing = self.drag_areas(stage, t, with_rate=True)
-            ctx.law = (cds, rate)
-        else:
-            cds, timing = self.drag_areas(stage, t)
-        ctx.stage["timing"] = timing
-        for ext in self.extensions:
-            cds = ext.reshape_drag_area(ctx, cds, t)
-        apparent = self._apparent(ctx, t)
-        seen = cds if apparent is None else cds + apparent
+        cds, seen, timing = self._extended_drag_areas(ctx)
 
         weight_ratio = self.stated_total_weight / (values["vehicle_weight"] + self.chute_weight.sum())
         cds_v = values["vehicle_cds"]
@@ -360,6 +351,21 @@ class TestModel:
         noise_lc = values.get("noise_lc", np.ones(theta.shape[0]))
         return Prediction(acc=acc, lc=lc, cds=cds, timing=timing,
                           noise_acc=values["noise_acc"], noise_lc=noise_lc)
+
+    def _extended_drag_areas(self, ctx):
+        """(cds, seen, timing) at ``ctx.time``: the stage law's drag areas reshaped by the extensions, and
+        ``seen``, those plus the momentum terms' apparent drag area (what the channels see)."""
+        t = ctx.time
+        if any(ext.needs_drag_area_rate for ext in self.extensions):   # one pass of the law for both
+            cds, rate, timing = self.drag_areas(ctx.stage, t, with_rate=True)
+            ctx.law = (cds, rate)
+        else:
+            cds, timing = self.drag_areas(ctx.stage, t)
+        ctx.stage["timing"] = timing
+        for ext in self.extensions:
+            cds = ext.reshape_drag_area(ctx, cds, t)
+        apparent = self._apparent(ctx, t)
+        return cds, (cds if apparent is None else cds + apparent), timing
 
     def _apparent(self, ctx, t):
         total = None

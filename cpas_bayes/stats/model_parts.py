@@ -65,7 +65,6 @@ class Extension:
     practical_floor = None
     physical_lower_limits = ()    # parameters whose prior's lower bound is a physical limit (a lag of 0), not an edge
     needs_load_cells = False      # a term acting on load cells only does not apply without them
-    needs_measured_airspeed = False   # a term built on the measured airspeed and q̄ (not on a logger bundle)
     reads_air_data = False        # reads ρ, V, q̄, γ at the bins: a logger model then gives its walkers' (Context.air)
     needs_drag_area_rate = False  # reads Context.law: the model then gives the stage law's rate with its drag areas
 

@@ -234,8 +234,6 @@ PHYSICAL = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 def applies(name, test):
     """Whether term ``name`` can act on the channels ``test`` has (load-cell terms need load cells)."""
     term = EXTENSIONS[name]
-    if term.needs_measured_airspeed and not test.measured_qbar:
-        return False
     return not term.needs_load_cells or any(p.load_cell for p in test.parachutes)
 
 
