@@ -265,3 +265,20 @@ def test_a_fit_stopped_by_ess_covers_the_truth_and_reports_what_it_stopped_on(tm
             z.append((truth[name] - x.mean()) / x.std())
     assert np.mean(inside) >= 0.7, np.mean(inside)
     assert np.sqrt(np.mean(np.square(z))) < 1.5
+
+
+def test_the_ess_rule_waits_for_a_growing_tau_but_not_for_a_falling_one():
+    """τ̂ that grew by more than tau_rtol since the last check is the start-up transient's sign; one that
+    fell (the half-chain burn-in dropped an early stretch) or moved within its noise is not."""
+    rng = np.random.default_rng(5)
+    chains = [np.moveaxis(_ar1(rng, 0.5, 20, 400, 2), 0, 1) for _ in range(4)]   # (S, W, D) per ensemble
+    first = ess_check(chains, 5, ess_target=200)
+    assert not first.met and first.statistics.meets(200, 1.01)                # no previous τ: not yet
+    tau_max = max(float(np.max(t)) for t in first.taus)
+
+    def met(previous_tau_max):
+        return ess_check(chains, 5, ess_target=200, tau_prev=[np.full(2, previous_tau_max)]).met
+
+    assert met(1.5 * tau_max)                 # fell by a third: settled
+    assert met(tau_max / 1.04)                # grew by 4 %: within tau_rtol
+    assert not met(tau_max / 1.10)            # grew by 10 %: still growing

@@ -34,8 +34,8 @@ Procedure
    task per ensemble and chunk, so the workers stay busy) and stop when every
    parameter's rank-normalised bulk and tail ESS reach ``ess_target`` and its
    nested R-hat over ensembles is at most ``rhat_target`` on the draws the fit
-   keeps (burn-in half the chain, thin = ½·min τ), and τ has settled (moved
-   less than ``tau_rtol`` since the last chunk); τ is reported.
+   keeps (burn-in half the chain, thin = ½·min τ), and τ has stopped growing
+   (less than ``tau_rtol`` above its value at the last chunk); τ is reported.
    ``"tau"`` -- each ensemble runs in chunks, as its own task, until its chain
    is longer than ``tau_factor`` (50) integrated autocorrelation times τ and τ
    has changed by less than 5 % since the last chunk; burn-in = 2·max τ,
@@ -84,7 +84,7 @@ class SamplerOptions:
     store_every: int = 5              # keep every k-th step in the chain file
     stop: str = "ess"                 # "ess": ESS and R-hat targets (module docstring); "tau": the τ rule below
     tau_factor: float = 50.0          # τ rule: converged when steps > tau_factor·τ ...
-    tau_rtol: float = 0.05            # ... and τ moved less than this since the last check
+    tau_rtol: float = 0.05            # ... and τ moved less than this since the last check (ESS rule: grew)
     ess_target: float = ESS_TARGET    # ESS rule: bulk and tail ESS of every parameter at least this ...
     rhat_target: float = RHAT_TARGET  # ... and its R-hat at most this
     proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (_schedule); "de" alone
