@@ -1,7 +1,5 @@
 """``python -m cpas_bayes``: the command line."""
 
-import sys
+from cpas_bayes.app.entry import run_program
 
-from cpas_bayes.app.entry import main
-
-sys.exit(main())
+run_program()

@@ -47,6 +47,43 @@ def _run(args, tmp_path):
                           cwd=tmp_path, timeout=300)
 
 
+def test_the_program_ends_without_teardown_but_with_its_whole_output_and_status(tmp_path):
+    # the output goes to a pipe (block-buffered): ending the process with os._exit must flush it first
+    bundle = next(p for p in example_bundles() if p.name.startswith("drogue"))
+    proc = _run(["validate", str(bundle)], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.rstrip().endswith("F_D3, F_D6"), proc.stdout[-300:]
+    bad = _run(["validate", str(tmp_path / "no-such-bundle")], tmp_path)
+    assert bad.returncode != 0 and "no-such-bundle" in bad.stdout + bad.stderr
+
+
+def test_the_program_runs_the_exit_handlers_then_ends_at_once_with_the_commands_status(monkeypatch):
+    calls = []
+    monkeypatch.setattr(entry, "main", lambda: calls.append("command") or 2)
+    monkeypatch.setattr("atexit._run_exitfuncs", lambda: calls.append("exit handlers"))
+    monkeypatch.setattr("os._exit", lambda status: calls.append(status))
+    entry.run_program()
+    assert calls == ["command", "exit handlers", 2]
+
+
+def test_the_program_takes_the_ordinary_exit_while_a_thread_it_must_wait_for_runs(monkeypatch):
+    import threading
+
+    release = threading.Event()
+    worker = threading.Thread(target=release.wait, args=(60,))
+    worker.start()                            # non-daemon and running: os._exit would cut it off
+    exits = []
+    monkeypatch.setattr(entry, "main", lambda: 3)
+    monkeypatch.setattr("os._exit", exits.append)
+    try:
+        with pytest.raises(SystemExit) as stop:
+            entry.run_program()
+    finally:
+        release.set()
+        worker.join()
+    assert stop.value.code == 3 and exits == []
+
+
 def test_bad_input_after_the_server_started_is_still_one_clear_message(tmp_path):
     proc = _run(["fit", str(tmp_path / "no-such-bundle"), "--out", str(tmp_path / "fit")], tmp_path)
     assert proc.returncode == 2, proc.stderr
