@@ -285,7 +285,8 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.data.bundle import read_bundle
     from cpas_bayes.data.reduction import reduce_test
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
-    from cpas_bayes.inference.fit_folder import fill_time_table, record_checks
+    from cpas_bayes.core.ownership import claim_folder
+    from cpas_bayes.inference.fit_folder import fill_time_table, record_checks, write_fit_files
     from cpas_bayes.inference.predictive_checks import run_checks
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
@@ -302,10 +303,12 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous)
     on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
                   "rerun the same command to resume from it")
+    out = claim_folder(out)
     with _executor(min(workers, ensembles), scheduler) as executor:
-        fit = fit_model(model, options, out=out, echo=click.echo, executor=executor)
+        fit = fit_model(model, options, checkpoint_dir=out / "checkpoint", echo=click.echo, executor=executor)
 
-        def checks():   # run while the workers draw the figures that need none
+        def checks():   # run while the workers draw the figures that need none, as is the files' writing
+            write_fit_files(fit, out)
             found = run_checks(fit, rng=0)
             warnings.extend(record_checks(fit, found, out))
             return found

@@ -469,7 +469,7 @@ def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=
     Checkpoints go to ``checkpoint_dir`` (default ``out/checkpoint``); none without either.
     ``executor`` runs the ensembles (see :func:`sample_posterior`).
     """
-    from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, build_datatree, build_summary, convergence, save_datatree, write_summary
+    from cpas_bayes.inference.fit_folder import build_datatree, build_summary, convergence, write_fit_files
 
     from cpas_bayes.core.ownership import claim_folder
 
@@ -480,11 +480,10 @@ def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=
                                 executor=executor)
     tree = build_datatree(model, sampling, np.random.default_rng([options.seed, 99]))
     diagnostics = convergence(tree, sampling)
-    summary = build_summary(model, tree, diagnostics, options)
+    fit = Fit(model, sampling, tree, summary=build_summary(model, tree, diagnostics, options))
     if out:
-        save_datatree(tree, out / POSTERIOR_NAME)
-        write_summary(out, summary)
-    return Fit(model, sampling, tree, summary)
+        write_fit_files(fit, out)
+    return fit
 
 
 def fit_test(test, options: SamplerOptions = SamplerOptions(), out=None, priors=None, decay="linear",

@@ -219,6 +219,12 @@ def _record(folder, summary, tree, summary_source):
     return FitRecord(folder=folder, summary=summary, draws=draws, priors=priors)
 
 
+def write_fit_files(fit, folder):
+    """A fit's ``posterior.nc`` and ``summary.json`` into ``folder`` (claimed by the caller)."""
+    save_datatree(fit.tree, Path(folder) / POSTERIOR_NAME)
+    write_summary(folder, fit.summary)
+
+
 def write_summary(folder, summary):
     write_json(Path(folder) / SUMMARY_NAME, summary)
 

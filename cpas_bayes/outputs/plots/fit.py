@@ -265,20 +265,18 @@ def plot_corner(values, names, labels, title, max_points=2500, rng=None):
     """
     rng = np.random.default_rng(0) if rng is None else rng
     d = len(names)
-    fig, axes = plt.subplots(d, d, figsize=(2.2 * d + 1, 2.2 * d + 1), squeeze=False)
-    # Fixed spacing: a constrained layout of d² axes costs seconds per figure.
-    fig.subplots_adjust(left=0.09, right=0.98, bottom=0.08, top=0.95, wspace=0.08, hspace=0.25)
+    fig = plt.figure(figsize=(2.2 * d + 1, 2.2 * d + 1))
+    # Fixed spacing: a constrained layout of d² axes costs seconds per figure. Only the lower triangle's
+    # axes are made (~9 ms each) and each histogram is one patch, not 40 bars.
+    grid = fig.add_gridspec(d, d, left=0.09, right=0.98, bottom=0.08, top=0.95, wspace=0.08, hspace=0.25)
     pick = rng.choice(values.shape[0], size=min(max_points, values.shape[0]), replace=False)
     for r in range(d):
-        for c in range(d):
-            ax = axes[r, c]
-            if c > r:
-                ax.set_axis_off()
-                continue
+        for c in range(r + 1):
+            ax = fig.add_subplot(grid[r, c])
             x = values[:, c]
             if r == c:
                 q05, q50, q95 = np.quantile(x, (0.05, 0.5, 0.95))
-                ax.hist(x, bins=40, color=_MODEL, alpha=0.7, density=True)
+                ax.hist(x, bins=40, color=_MODEL, alpha=0.7, density=True, histtype="stepfilled")
                 for q in (q05, q50, q95):
                     ax.axvline(q, color="k", lw=0.8, ls="--" if q != q50 else "-")
                 ax.set_title(f"{names[c]} = {q50:.4g} [{q05:.4g}, {q95:.4g}]", fontsize=8)
