@@ -54,7 +54,7 @@ def test_the_program_ends_without_teardown_but_with_its_whole_output_and_status(
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.rstrip().endswith("F_D3, F_D6"), proc.stdout[-300:]
     bad = _run(["validate", str(tmp_path / "no-such-bundle")], tmp_path)
-    assert bad.returncode != 0 and "no-such-bundle" in bad.stdout + bad.stderr
+    assert bad.returncode == 2 and "no-such-bundle" in bad.stdout + bad.stderr
 
 
 def test_the_program_runs_the_exit_handlers_then_ends_at_once_with_the_commands_status(monkeypatch):

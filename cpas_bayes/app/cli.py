@@ -282,10 +282,10 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
     resumable checkpoints in OUT/checkpoint/ (rerun the same command to resume).
     """
+    from cpas_bayes.core.ownership import claim_folder
     from cpas_bayes.data.bundle import read_bundle
     from cpas_bayes.data.reduction import reduce_test
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
-    from cpas_bayes.core.ownership import claim_folder
     from cpas_bayes.inference.fit_folder import fill_time_table, record_checks, write_fit_files
     from cpas_bayes.inference.predictive_checks import run_checks
     from cpas_bayes.outputs.plots.fit import write_fit_figures

@@ -83,7 +83,7 @@ def run_program():
     status = main()
     status = status if isinstance(status, int) else (0 if status is None else 1)
     if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
-        sys.exit(status)        # a thread the interpreter would wait for: the ordinary exit, which does
+        sys.exit(status)        # a thread still running: the ordinary exit, which waits for it
     atexit._run_exitfuncs()     # what exit would run: the workers' server stopped, temporary folders removed
     for stream in (sys.stdout, sys.stderr):
         try:
