@@ -101,3 +101,41 @@ def test_a_fit_through_the_program_uses_the_early_server_and_writes_its_outputs(
     summary = json.loads((out / "summary.json").read_text())
     assert summary["diagnostics"]["converged"]
     assert len(list(out.glob("*.png"))) >= 8
+
+
+_SERVER_PROGRAM = """
+import multiprocessing as mp
+import sys
+from cpas_bayes.core import executor
+
+if __name__ == "__main__":
+    if sys.argv[1] == "with":
+        executor.start_worker_server(["teardown_probe"])
+    else:   # the same server without the quick exit
+        from multiprocessing import forkserver
+        mp.get_context("forkserver").set_forkserver_preload(["teardown_probe"])
+        forkserver.ensure_running()
+    with mp.get_context("forkserver").Pool(1) as pool:
+        assert pool.apply(abs, (-3,)) == 3
+    print("program done", flush=True)
+"""
+
+
+@pytest.mark.skipif("forkserver" not in __import__("multiprocessing").get_all_start_methods(),
+                    reason="no fork server on this platform (spawned workers end by os._exit)")
+@pytest.mark.parametrize("server", ["with", "without"])
+def test_the_worker_server_ends_without_its_teardown(tmp_path, server):
+    # The server holds the program's output open; a pipe reader waits for it to end. Its exit handlers
+    # would run before the interpreter's teardown: the probe's, registered before the quick exit's, must
+    # not run when the quick exit is there, and does run without it (the probe would see a teardown).
+    (tmp_path / "teardown_probe.py").write_text(
+        "import atexit, os\natexit.register(lambda: os.write(2, b'server teardown ran\\n'))\n")
+    (tmp_path / "program.py").write_text(_SERVER_PROGRAM)
+    import os
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    run = subprocess.run([sys.executable, "program.py", server], capture_output=True, text=True, cwd=tmp_path,
+                         env=env, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "program done" in run.stdout
+    assert ("server teardown ran" in run.stderr) == (server == "without")
