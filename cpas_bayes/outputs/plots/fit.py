@@ -32,7 +32,7 @@ from cpas_bayes.core.ownership import claim_folder
 from cpas_bayes.inference.check_draws import channel_sigma, posterior_matrix, posterior_median, predict_draws
 from cpas_bayes.inference.predictive_checks import STATISTICS, run_checks
 from cpas_bayes.inference.residuals import PARETO_K_LIMIT, stage_timing_medians
-from cpas_bayes.outputs.figures import save_figure
+from cpas_bayes.outputs.figures import fixed_grid, save_figure
 
 _ACC = "#1f9bd1"
 _MODEL = "#d95f02"
@@ -129,8 +129,11 @@ def plot_bands(fit, pred):
     lc_row = {int(c): r for r, c in enumerate(obs.lc_index)}
     n_cols = model.n_chutes + 1
     n_rows = 1 + model.n_stages
-    fig, axes = plt.subplots(n_rows, n_cols, figsize=(4.6 * n_cols, 3.3 * n_rows), constrained_layout=True,
-                             squeeze=False)
+    footer = _health_lines(fit.summary.get("warnings") or [], 4.6 * n_cols)
+    footer_height = 0.15 * len(footer) + (0.1 if footer else 0.0)
+    fig = plt.figure(figsize=(4.6 * n_cols, 3.3 * n_rows + footer_height))
+    axes = fixed_grid(fig, n_rows, n_cols, left=0.75, right=0.15, top=0.8, bottom=0.5 + footer_height,
+                      wspace=0.75, hspace=0.75).subplots(squeeze=False)
     for i, p in enumerate(model.parachutes):
         bands = u.from_si(_quantile_bands(pred["cds"][:, i, :]), "area")
         data = None
@@ -147,7 +150,7 @@ def plot_bands(fit, pred):
                             starts, f"drag area C_D S [{area}]")
             if row == 0:
                 against = "load cell against the model" if data is not None else "the model (no load cell)"
-                ax.set_title(f"{p.id} ({p.kind}, {p.inflation} mass): {against}")
+                ax.set_title(f"{p.id} ({p.kind}, {p.inflation} mass): {against}", fontsize=10)
                 ax.legend(fontsize=7, loc="upper left")
             else:
                 before, after = ZOOM[p.inflation]
@@ -165,7 +168,7 @@ def plot_bands(fit, pred):
         _data_and_bands(ax, t, acc_data, _ACC, "accelerometer drag area (Eq. 8)", acc_bands, "Σ canopies (model)",
                         all_starts, f"total drag area [{area}]")
         if row == 0:
-            ax.set_title("cluster: accelerometer against the summed model")
+            ax.set_title("cluster: accelerometer against the summed model", fontsize=10)
             ax.legend(fontsize=7, loc="upper left")
         else:
             _, t0, t1 = _cluster_stage_window(model, timing, row - 1)
@@ -174,19 +177,21 @@ def plot_bands(fit, pred):
     fig.suptitle(f"{model.test.name}: reconstructed drag areas — the posterior bands of the model (its "
                  "uncertainty, not the noise)\nshould run through the middle of the points, fill, peak and decay "
                  "included; lower rows zoom on each fill", fontsize=10)
-    _health_footer(fig, fit.summary.get("warnings") or [])
+    if footer:
+        fig.text(0.5, 0.08 / fig.get_figheight(), "\n".join(footer), color="firebrick", fontsize=8, ha="center",
+                 va="bottom")
     return fig
 
 
-def _health_footer(fig, warnings, shown=4):
-    """The fit's health warnings (summary.json ``warnings``) under the figure, in red; nothing when clean."""
+def _health_lines(warnings, fig_width, shown=4):
+    """Lines of the fit's health warnings (summary.json ``warnings``) for under the figure; none when clean."""
     if not warnings:
-        return
-    width = max(60, int(fig.get_figwidth() * 15))   # characters of 8-pt text across the figure
-    lines = [textwrap.fill(f"[{w['code']}] {w['message']}", width) for w in warnings[:shown]]
+        return []
+    width = max(60, int(fig_width * 15))   # characters of 8-pt text across the figure
+    lines = [line for w in warnings[:shown] for line in textwrap.wrap(f"[{w['code']}] {w['message']}", width)]
     if len(warnings) > shown:
         lines.append(f"... and {len(warnings) - shown} more in summary.json")
-    fig.supxlabel("FIT HEALTH WARNINGS\n" + "\n".join(lines), color="firebrick", fontsize=8, ha="center")
+    return ["FIT HEALTH WARNINGS"] + lines
 
 
 # ---------------------------------------------------------------------------
@@ -339,8 +344,9 @@ def plot_trace(fit, names):
     ids = np.unique(ensemble)
     per = fit.summary.get("diagnostics_per_parameter", {}) or {}
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.1 * len(names) + 1), constrained_layout=True,
-                             squeeze=False, gridspec_kw={"width_ratios": [1.6, 1.0]})
+    fig = plt.figure(figsize=(12, 2.1 * len(names) + 1))
+    axes = fixed_grid(fig, len(names), 2, left=0.9, right=0.2, top=0.7, bottom=0.55, wspace=0.75, hspace=0.5,
+                      width_ratios=[1.6, 1.0]).subplots(squeeze=False)
     units = fit.model.test.units
     for r, name in enumerate(names):
         unit = next((prm.unit for prm in fit.model.parameters if prm.name == name), "")
