@@ -554,8 +554,11 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
     pred = _band_draws(fit, n_draws, rng)
     groups = corner_groups(fit)
     streams = iter(rng.spawn(len(groups) + 1))
+    # the slowest first, so that two workers finish together (bands and trace ~0.7 s each, a corner of six
+    # parameters 0.6 s, of five 0.4 s, loads 0.35 s)
     jobs = [("bands", out / "bands.png", (fit, pred), {}),
-            ("loads", out / "loads.png", (fit, pred, next(streams)), {})]
+            ("trace", out / "trace.png", (fit, worst_rhat_parameters(fit)), {})]
+    loads = ("loads", out / "loads.png", (fit, pred, next(streams)), {})
     post = fit.tree["posterior"]
     for pid, k, names in groups:
         values = np.column_stack([np.asarray(post[n].values, float).ravel() for n in names])
@@ -565,7 +568,8 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
                  "data pin the parameters; tilted ones show trade-offs")
         jobs.append(("corner", inside(out, f"corner_{pid}_s{k}.png"), (values, short, labels, title),
                      {"rng": next(streams)}))
-    jobs.append(("trace", out / "trace.png", (fit, worst_rhat_parameters(fit)), {}))
+    jobs[2:] = sorted(jobs[2:], key=lambda job: -len(job[2][1]))   # corners with the most parameters first
+    jobs.append(loads)
     started = [executor.submit(_figure_task, job) for job in jobs]
     checks = checks() if callable(checks) else checks
     late = [("ppc", out / "ppc.png", (checks.ppc,), {}),
