@@ -301,15 +301,6 @@ def _call_without_reports(args):
     return fn(item, None)
 
 
-_SERVER_EXIT = "cpas_bayes.core.server_exit"
-
-
-def _server_preload(modules):
-    """What the fork server imports: ``modules``, then :mod:`cpas_bayes.core.server_exit` last, so that its
-    exit handler runs first when the server ends."""
-    return sorted(set(modules) - {_SERVER_EXIT}) + [_SERVER_EXIT]
-
-
 def start_worker_server(modules):
     """Start the fork server of local workers now, importing ``modules`` (names) in it.
 
@@ -324,7 +315,7 @@ def start_worker_server(modules):
         return
     from multiprocessing import forkserver
 
-    mp.get_context("forkserver").set_forkserver_preload(_server_preload(modules))
+    mp.get_context("forkserver").set_forkserver_preload(sorted(modules))
     forkserver.ensure_running()
 
 
@@ -353,8 +344,7 @@ class ProcessExecutor(Executor):
             # The server imports what the caller has imported of the package (the tasks' modules and
             # their numerical libraries), so that workers start warm without this layer naming them;
             # unless it was started earlier (start_worker_server), with the modules the program named.
-            self._ctx.set_forkserver_preload(_server_preload(
-                m for m in sys.modules if m.startswith("cpas_bayes.") and not m.endswith("__main__")))
+            self._ctx.set_forkserver_preload(sorted(m for m in sys.modules if m.startswith("cpas_bayes.") and not m.endswith("__main__")))
             # Start the server now: its imports (~2 s) overlap the caller's work until the first map.
             forkserver.ensure_running()
         else:
