@@ -402,6 +402,35 @@ ISSUE_18 = [
 REFUSALS += ISSUE_18
 
 
+def _separated_by(files, sep, decimal=None):
+    path = files.folder / "data.csv"
+    text = path.read_text()
+    if decimal:
+        text = text.replace(".", decimal)
+    path.write_text(text.replace(",", sep))
+
+
+# hostile and careless inputs found by a fuzzing pass over validate and reduce (2026-11-24)
+FUZZED = [
+    ("id that is the cluster total's", lambda f: f.set_key("parachute", 1, "id", value="total"), "test.toml",
+     "key 'parachute[1].id'", "would give the reduction's columns the names of others"),
+    ("id ending in _raw", lambda f: f.set_key("parachute", 1, "id", value="D3_raw"), "test.toml",
+     "key 'parachute[1].id'", "does not end with '_raw'"),
+    ("id ending in _sigma_random", lambda f: f.set_key("parachute", 1, "id", value="D3_sigma_random"), "test.toml",
+     "key 'parachute[1].id'", "would give the reduction's columns the names of others"),
+    ("kind with a trailing space", lambda f: f.set_key("parachute", 0, "kind", value="drogue "), "test.toml",
+     "key 'parachute 'D3'.kind'", "e.g. 'drogue', 'main', 'pilot', 'fbcp' or a kind of your own"),
+    ("semicolon-separated CSV", lambda f: _separated_by(f, ";"), "data.csv", "row 1 (header)",
+     "the columns are separated by semicolons, not commas"),
+    ("semicolons and decimal commas", lambda f: _separated_by(f, ";", decimal=","), "data.csv", "row 1 (header)",
+     "separated by semicolons"),
+    ("tab-separated CSV", lambda f: _separated_by(f, "\t"), "data.csv", "row 1 (header)", "separated by tabs"),
+    ("data.csv a folder", lambda f: ((f.folder / "data.csv").unlink(), (f.folder / "data.csv").mkdir()),
+     "data.csv", None, "not a regular file"),
+]
+REFUSALS += FUZZED
+
+
 @pytest.mark.parametrize("defect, file, place, problem", [case[1:] for case in REFUSALS],
                          ids=[case[0] for case in REFUSALS])
 def test_refusal(example_dir, bundle_files, snapshot, defect, file, place, problem):
@@ -478,3 +507,21 @@ def test_stated_limits_are_the_documented_ones():
     doc = (Path(__file__).resolve().parent.parent / "docs" / "test-bundle.md").read_text(encoding="utf-8")
     for spec in list(limits.CHANNELS.values()) + list(limits.VEHICLE.values()) + list(limits.PARACHUTE.values()):
         assert spec.reason in doc, spec.reason
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "mkfifo"), reason="no named pipes on this platform")
+def test_a_pipe_in_place_of_data_csv_is_refused_not_read(example_dir):
+    # opening a FIFO for reading blocks until a writer comes: the reader must look before it opens
+    import os
+    import signal
+
+    folder = example_dir(DROGUE)
+    (folder / "data.csv").unlink()
+    os.mkfifo(folder / "data.csv")
+    signal.signal(signal.SIGALRM, lambda *_: pytest.fail("read_bundle blocked on the pipe"))
+    signal.alarm(30)
+    try:
+        with pytest.raises(BundleError, match="data.csv: not a regular file"):
+            read_bundle(folder)
+    finally:
+        signal.alarm(0)

@@ -452,6 +452,28 @@ def test_bad_options_raise_input_error(examples, kwargs, where, words):
     assert words in exc.value.fix
 
 
+@pytest.mark.parametrize("column, factor, words", [
+    ("F_D3", 0.0, "too far from 1 to be riser friction"),        # cells that read nothing
+    ("F_D3", 4.448, "too far from 1 to be riser friction"),      # newtons read as pounds-force
+    ("G", 0.0, "drag area (W_T·G/q̄ − CDS_V) there is not positive"),
+])
+def test_a_friction_factor_that_friction_cannot_explain_is_refused(examples, column, factor, words):
+    import dataclasses
+
+    test = examples["drogue-clean"][0]
+    data = test.data.copy()
+    cells = [c for c in data.columns if c.startswith("F_")] if column.startswith("F_") else [column]
+    for c in cells:
+        data[c] = data[c] * factor
+    with pytest.raises(InputError) as exc:
+        red.reduce_test(dataclasses.replace(test, data=data))
+    assert "window" in exc.value.where and words in exc.value.problem
+    assert "units" in exc.value.fix or "G and qbar" in exc.value.fix
+    # the same windows given by hand are refused alike
+    with pytest.raises(InputError, match="option --window 3:8"):
+        red.reduce_test(dataclasses.replace(test, data=data), windows=[(3.0, 8.0)])
+
+
 def test_parse_window():
     assert red.parse_window("3.5:9") == (3.5, 9.0)
     with pytest.raises(InputError, match="--window"):

@@ -67,6 +67,11 @@ def test_a_new_kind_without_priors_is_refused_naming_kind_and_fix(rescue_bundle,
     assert code == 2
     assert "no priors for parachute kind 'rescue'" in err and "priors/template.toml" in err
     assert "--priors FILE" in err
+    # the refusal points at where the bundle asks for the kind; the reduction refuses the unknown kind alike
+    assert f"{rescue_bundle / 'test.toml'}, key 'parachute 'D3'.kind'" in err
+    code, _, err = run(capsys, "reduce", rescue_bundle, "--out", rescue_bundle.parent / "reduced")
+    assert code == 2 and "no priors for parachute kind 'rescue'" in err
+    assert not (rescue_bundle.parent / "reduced").exists()
     # the same file given on the command line instead works
     assert run(capsys, "validate", "--priors", rescue_bundle / "rescue.toml", rescue_bundle)[0] == 0
 

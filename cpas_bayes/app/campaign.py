@@ -477,7 +477,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     paths = find_bundles(folder)
     tests = validate_all(paths)
     for t in tests:   # a bad or missing prior file: before any step
-        load_test_priors([p.kind for p in t.parachutes], config.priors, t.priors_files)
+        load_test_priors([p.kind for p in t.parachutes], config.priors, t.priors_files, t.kind_keys())
     configs = {}
     for path, test in zip(paths, tests):
         test_folder(out, test.name)  # every path from a name checked before anything runs

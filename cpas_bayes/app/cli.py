@@ -77,12 +77,12 @@ def cli():
     """Parachute flight-test reduction, Bayesian inflation reconstruction and Monte Carlo loads."""
 
 
-def _check_priors(kinds, priors, files=()):
+def _check_priors(kinds, priors, files=(), named_in=None):
     """Load every prior a test needs (its own prior files and the override, each checked whole) before any
     work starts."""
     from cpas_bayes.stats.priors import load_test_priors
 
-    load_test_priors(kinds, priors, files)
+    load_test_priors(kinds, priors, files, named_in)
 
 
 @cli.command()
@@ -106,7 +106,7 @@ def validate(bundles, as_json, priors):
     for path in bundles:
         try:
             test = read_bundle(path)
-            _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
+            _check_priors([p.kind for p in test.parachutes], priors, test.priors_files, test.kind_keys())
             summaries.append(summary(test))
         except InputError as exc:
             failures += 1
@@ -143,6 +143,7 @@ def reduce_command(bundle, out, scale, windows):
     from cpas_bayes.outputs.reduction import write_reduction
 
     test = read_bundle(bundle)
+    _check_priors([p.kind for p in test.parachutes], None, test.priors_files, test.kind_keys())   # a known kind
     chosen = [parse_window(w, test.label) for w in windows] or None
     red = reduce_test(test, scale=scale, windows=chosen)
     paths = write_reduction(red, out)
@@ -294,7 +295,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     if problem:
         raise click.BadParameter(problem[1], param_hint=problem[0])
     test = read_bundle(bundle)
-    _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
+    _check_priors([p.kind for p in test.parachutes], priors, test.priors_files, test.kind_keys())
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
                              ess_target=ess_target or ESS_TARGET, proposal=proposal, coordinates=coordinates,
                              max_steps=max_steps)
@@ -498,7 +499,7 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
         raise click.BadParameter(f"{sorted({n for n in names if names.count(n) > 1})[0]} is given twice",
                                  param_hint="--candidates")
     test = read_bundle(bundle)
-    _check_priors([p.kind for p in test.parachutes], priors, test.priors_files)
+    _check_priors([p.kind for p in test.parachutes], priors, test.priors_files, test.kind_keys())
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
                               sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
     on_interrupt(f"nothing was written to {out} (a diagnosis writes its files at the end); rerun the command")

@@ -151,12 +151,12 @@ def name_problem(value, max_length=MAX_NAME):
     return None
 
 
-def check_name(value, file, where, what="name", error=InputError, max_length=MAX_NAME):
+def check_name(value, file, where, what="name", error=InputError, max_length=MAX_NAME, example="'EDU-D3'"):
     """``value`` if it is a safe name, else ``error`` naming the file and the key."""
     problem = name_problem(value, max_length)
     if problem is not None:
         raise error(file, where, f"{what} {shown(value)} cannot be used: {problem}",
-                    f"use 1–{max_length} letters, digits, '-', '_', '.', '+' or spaces, e.g. 'EDU-D3'")
+                    f"use 1–{max_length} letters, digits, '-', '_', '.', '+' or spaces, e.g. {example}")
     return value
 
 

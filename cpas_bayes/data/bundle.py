@@ -157,6 +157,14 @@ class FlightTest:
         """A short label for messages: the source folder, else the name."""
         return str(self.source) if self.source else self.name
 
+    def kind_keys(self):
+        """{kind: (file, key)}: where test.toml names each parachute kind (its first parachute of it)."""
+        file = self.source / TOML_NAME if self.source else self.name
+        keys = {}
+        for p in self.parachutes:
+            keys.setdefault(p.kind, (file, f"key 'parachute '{p.id}'.kind'"))
+        return keys
+
 
 # ---------------------------------------------------------------------------
 # reading
@@ -278,6 +286,11 @@ def _parse_parachutes(doc, reader, units):
         if pid.endswith("_sigma"):
             reader.fail(f"parachute[{i}].id", f"parachute id {pid!r} ends with '_sigma', which marks sigma columns",
                         "choose an id that does not end with '_sigma'")
+        if pid == "total" or "_" in pid and pid.rsplit("_", 1)[1] in ("raw", "random", "systematic"):  # reduced.csv
+            reader.fail(f"parachute[{i}].id", f"parachute id {pid!r} would give the reduction's columns the "
+                        "names of others (load_total, cds_<id>_raw, ..._sigma_random)",
+                        "choose an id that is not 'total' and does not end with '_raw', '_random' or "
+                        "'_systematic'")
         where = f"parachute '{pid}'."
         if pid in seen:
             reader.fail(f"parachute[{i}].id", f"duplicate parachute id {pid!r}", "give every parachute a unique id")
@@ -333,7 +346,8 @@ RESERVED_KINDS = ("provenance",)   # memo.toml's own tables sit beside its kinds
 def check_kind(kind, file, where, error):
     """A parachute kind: the package's (priors shipped) or the user's own (a safe name whose priors come from
     a file), but never a package kind in other letter case (a typo, not a new kind)."""
-    check_name(kind, file, where, "parachute kind", error)
+    check_name(kind, file, where, "parachute kind", error,
+               example=f"{', '.join(repr(k) for k in KINDS)} or a kind of your own with its prior file")
     if kind.lower() in RESERVED_KINDS:
         raise error(file, where, f"{shown(kind)} cannot be a parachute kind: the model memo uses the name for "
                     "its own table", "choose another name for the kind")

@@ -10,6 +10,7 @@ column is used, so a bad cell is reported by its row and column.
 from __future__ import annotations
 
 import io
+import os
 
 import numpy as np
 import pandas as pd
@@ -23,6 +24,8 @@ _TRAILING_FIX = "remove the comma at the end of every line (an export option of 
 
 
 def _missing(path, other):
+    if os.path.lexists(path):   # there, but a folder, a pipe, a device or a broken link
+        return BundleError(path, "", "not a regular file", f"put the bundle's {path.name} there as a plain file")
     return BundleError(path, "", "file not found", f"a bundle folder needs {other} and {path.name} "
                                                    "(docs/test-bundle.md)")
 
@@ -33,6 +36,11 @@ def _check_header(path, names):
                           "keep the channels the bundle format uses (docs/test-bundle.md)")
     if names == [""]:
         raise BundleError(path, "row 1 (header)", "the header row is missing or empty", _HEADER_FIX)
+    if len(names) == 1 and any(sep in names[0] for sep in (";", "\t")):
+        sep = "semicolons" if ";" in names[0] else "tabs"
+        raise BundleError(path, "row 1 (header)", f"the columns are separated by {sep}, not commas",
+                          "export data.csv with commas between cells and points as decimal marks "
+                          "(a spreadsheet's 'CSV, comma-separated' with an English number format)")
     if len(names) > 1 and names[-1] == "":
         raise BundleError(path, f"row 1 (header), column {len(names)}",
                           "the header ends with a comma: an unnamed empty last column", _TRAILING_FIX)
@@ -155,6 +163,8 @@ def blank_column(frame, column, path):
 def csv_header(path):
     """data.csv's column names from a look at its first line, or None when the file is missing or unreadable
     (:func:`read_csv` then says why)."""
+    if not path.is_file():    # a FIFO or device would block the read; read_csv refuses it
+        return None
     try:
         with open(path, "rb") as fh:
             line = fh.readline(MAX_CSV_COLUMNS * (MAX_COLUMN_NAME + 2))   # a longer header is refused anyway

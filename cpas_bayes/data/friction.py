@@ -69,6 +69,7 @@ SETTLE_NOISE_TOL = 4.0         # band in smoothed-noise sd, whichever is wider
 MIN_AUTO_SECONDS = 0.5         # shortest stage interval used for calibration
 MIN_AUTO_SAMPLES = 20
 MIN_WINDOW_SAMPLES = 3         # a user window needs scatter to give an uncertainty
+MAX_SCALE_FACTOR = 3.0         # friction factors outside [1/3, 3] are errors of units or channels
 
 
 # ---------------------------------------------------------------------------
@@ -300,6 +301,22 @@ def _check_windows(test: FlightTest, windows):
     return checked
 
 
+def _check_ratio(test, ratio, window, source):
+    """Refuse a window's accelerometer/load-cell ratio that friction cannot explain: riser friction costs
+    the load cells some per cent of the load, so a ratio outside [1/MAX_SCALE_FACTOR, MAX_SCALE_FACTOR]
+    (or not positive) is a units, channel or data error, and scaling the cells by it would hide it."""
+    where = f"option --window {window}" if source == "user" else f"steady window {window} s (automatic)"
+    if not np.isfinite(ratio) or ratio <= 0:
+        raise InputError(test.label, where, f"the accelerometer's drag area (W_T·G/q̄ − CDS_V) there is "
+                         f"not positive (load-cell friction factor {ratio:.3g})",
+                         "check data.csv's G and qbar columns in that stretch, and the vehicle's weight and cds")
+    if not 1.0 / MAX_SCALE_FACTOR <= ratio <= MAX_SCALE_FACTOR:
+        raise InputError(test.label, where, f"the load cells read {1.0 / ratio:.3g}× the load the accelerometer "
+                         f"gives (friction factor {ratio:.3g}): too far from 1 to be riser friction",
+                         "check the load-cell columns' units (test.toml [units]; lbf read as N is a factor of "
+                         "4.45), which column each parachute's load_cell names, and the weights")
+
+
 def fit_scale_factor(test: FlightTest, mode, windows, accelerometer_cds, cells_cds,
                      source="user", stages=None):
     """Scale factor from windows [(t0, t1), ...] (validated), see the module docstring."""
@@ -318,6 +335,7 @@ def fit_scale_factor(test: FlightTest, mode, windows, accelerometer_cds, cells_c
                              "the load cells carry no load there (mean load-cell drag area ≤ 0)",
                              "place windows where the canopies are inflated and steady")
         ratio, s_r = window_ratio(accelerometer_cds[m], cells_cds[m])
+        _check_ratio(test, ratio, f"{t0:g}:{t1:g}", source)
         gq = float(g_over_q[m].mean())
         grad = np.array([gq / mean_L] + [gq * (1.0 - ratio) / mean_L] * len(test.parachutes)
                         + [-1.0 / mean_L])

@@ -452,7 +452,8 @@ def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), n
     from cpas_bayes.stats.observations import build_observations
     from cpas_bayes.stats.priors import load_test_priors
 
-    kind_priors, nuisance = load_test_priors([p.kind for p in test.parachutes], priors, test.priors_files)
+    kind_priors, nuisance = load_test_priors([p.kind for p in test.parachutes], priors, test.priors_files,
+                                              test.kind_keys())
     if not test.measured_qbar:   # a logger bundle: air data fitted with the inflation
         from cpas_bayes.stats.logger_model import LoggerModel
         return LoggerModel(test, kind_priors, nuisance, decay=decay, extensions=extensions, cluster=cluster,

@@ -195,12 +195,13 @@ def _override_files(override):
     return (override,) if isinstance(override, (str, Path)) else tuple(override)
 
 
-def load_kind_priors(kind, override=None):
+def load_kind_priors(kind, override=None, named_in=None):
     """Priors for parachute ``kind``: the package's ``priors/<kind>.toml`` if it ships one, then each file of
     ``override`` (one path or several, later ones win) whose ``kind`` is this one or absent.
 
     A kind the package does not ship needs a file with ``kind = "<kind>"`` holding every prior (see
-    ``priors/template.toml``).
+    ``priors/template.toml``); without one the refusal names ``named_in`` (file, key), where a test asks
+    for the kind, if given.
     """
     files = _override_files(override)
     check_kind(kind, files[-1] if files else PRIORS_DIR, "parachute kind", InputError)   # a name, never a path
@@ -225,7 +226,8 @@ def load_kind_priors(kind, override=None):
         finite_ck = bool(odoc.get("finite_mass_ck", finite_ck))
         base = KindPriors(kind, stage, chute, tuple(sources), finite_ck)
     if base is None:
-        raise InputError(files[-1] if files else "priors", f"kind '{kind}'",
+        file, key = named_in or (files[-1] if files else "priors", f"kind '{kind}'")
+        raise InputError(file, key,
                          f"no priors for parachute kind {shown(kind)}{did_you_mean(kind, KINDS)}: the package "
                          f"ships priors for {', '.join(KINDS)} only",
                          f'give a prior file with kind = "{kind}" (copy priors/template.toml) through --priors FILE '
@@ -243,12 +245,14 @@ def load_kind_priors(kind, override=None):
     return base
 
 
-def load_test_priors(kinds, override=None, files=()):
+def load_test_priors(kinds, override=None, files=(), named_in=None):
     """Every prior a test of parachute ``kinds`` needs: what ``fit``, ``diagnose`` and ``validate`` load before
     any work. ``files`` are the test's own prior files (test.toml ``priors``), ``override`` the command's
-    ``--priors`` (it wins). Returns ({kind: KindPriors}, NuisancePriors)."""
+    ``--priors`` (it wins); ``named_in`` {kind: (file, key)} where the test names each kind, for messages.
+    Returns ({kind: KindPriors}, NuisancePriors)."""
     sources = tuple(files) + _override_files(override)
-    return ({kind: load_kind_priors(kind, sources) for kind in dict.fromkeys(kinds)},
+    named_in = named_in or {}
+    return ({kind: load_kind_priors(kind, sources, named_in.get(kind)) for kind in dict.fromkeys(kinds)},
             load_nuisance_priors(sources))
 
 
