@@ -95,6 +95,8 @@ def validate(bundles, as_json, priors):
 
     Exit status is non-zero if any bundle or the prior file is refused; every refusal is printed.
     """
+    from cpas_bayes.data.reduction import check_load_cells
+
     failures, summaries = 0, []
     if priors is not None:
         try:
@@ -107,6 +109,7 @@ def validate(bundles, as_json, priors):
         try:
             test = read_bundle(path)
             _check_priors([p.kind for p in test.parachutes], priors, test.priors_files, test.kind_keys())
+            check_load_cells(test)   # what every later step needs of the cluster's load cells
             summaries.append(summary(test))
         except InputError as exc:
             failures += 1

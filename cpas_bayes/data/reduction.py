@@ -258,13 +258,8 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
         cols[name], cols[f"{name}_sigma"] = value, s.total
         cols[f"{name}_sigma_random"], cols[f"{name}_sigma_systematic"] = s.random, s.systematic
 
+    check_load_cells(test)
     with_cells = [p for p in test.parachutes if p.load_column]
-    if with_cells and len(with_cells) != len(test.parachutes):
-        missing = ", ".join(p.id for p in test.parachutes if not p.load_column)
-        raise InputError(test.label, "test.toml, load_cell",
-                         f"parachute(s) {missing} have no load cell, so the load cells cannot be calibrated "
-                         "against the accelerometer total",
-                         "give every parachute a load_cell column, or none to reduce the accelerometer alone")
     intervals = stage_intervals(test)
     width = peak_filter_width(peak_smoothing, test.sample_rate)
 
@@ -341,6 +336,18 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
 
 # ---------------------------------------------------------------------------
 # command-line helper
+
+
+def check_load_cells(test):
+    """Every parachute has a load cell, or none has: the friction calibration compares the cells' sum with
+    the accelerometer's total, so a cluster measured in part cannot be reduced (refused naming the key)."""
+    missing = [p for p in test.parachutes if not p.load_column]
+    if missing and len(missing) != len(test.parachutes):
+        file = test.source / "test.toml" if test.source else test.label
+        raise InputError(file, f"key 'parachute '{missing[0].id}'.load_cell'",
+                         f"parachute(s) {', '.join(p.id for p in missing)} have no load cell, so the load cells "
+                         "cannot be calibrated against the accelerometer total",
+                         "give every parachute a load_cell column, or none to reduce the accelerometer alone")
 
 
 def parse_window(text, source=""):
