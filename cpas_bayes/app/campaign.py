@@ -470,14 +470,14 @@ def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=pr
 def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     from cpas_bayes.core.task_clock import TaskClock
     from cpas_bayes.outputs.report import write_report
-    from cpas_bayes.stats.priors import load_test_priors
+    from cpas_bayes.stats.priors import priors_of_test
 
     started = _time.perf_counter()
     check_output(out)
     paths = find_bundles(folder)
     tests = validate_all(paths)
     for t in tests:   # a bad or missing prior file: before any step
-        load_test_priors([p.kind for p in t.parachutes], config.priors, t.priors_files, t.kind_keys())
+        priors_of_test(t, config.priors)
     configs = {}
     for path, test in zip(paths, tests):
         test_folder(out, test.name)  # every path from a name checked before anything runs

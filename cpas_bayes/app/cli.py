@@ -77,12 +77,15 @@ def cli():
     """Parachute flight-test reduction, Bayesian inflation reconstruction and Monte Carlo loads."""
 
 
-def _check_priors(kinds, priors, files=(), named_in=None):
-    """Load every prior a test needs (its own prior files and the override, each checked whole) before any
-    work starts."""
-    from cpas_bayes.stats.priors import load_test_priors
+def _check_priors(priors, test=None):
+    """Load every prior ``test`` needs (its own prior files and the override ``priors``, each checked whole)
+    before any work starts; without a test, the override for every package kind."""
+    from cpas_bayes.stats.priors import load_test_priors, priors_of_test
 
-    load_test_priors(kinds, priors, files, named_in)
+    if test is None:
+        load_test_priors(KINDS, priors)
+    else:
+        priors_of_test(test, priors)
 
 
 @cli.command()
@@ -100,7 +103,7 @@ def validate(bundles, as_json, priors):
     failures, summaries = 0, []
     if priors is not None:
         try:
-            _check_priors(KINDS, priors)
+            _check_priors(priors)
         except InputError as exc:
             failures += 1
             priors = None   # refused once; the bundles are checked with their own prior files
@@ -108,7 +111,7 @@ def validate(bundles, as_json, priors):
     for path in bundles:
         try:
             test = read_bundle(path)
-            _check_priors([p.kind for p in test.parachutes], priors, test.priors_files, test.kind_keys())
+            _check_priors(priors, test)
             check_load_cells(test)   # what every later step needs of the cluster's load cells
             summaries.append(summary(test))
         except InputError as exc:
@@ -146,7 +149,7 @@ def reduce_command(bundle, out, scale, windows):
     from cpas_bayes.outputs.reduction import write_reduction
 
     test = read_bundle(bundle)
-    _check_priors([p.kind for p in test.parachutes], None, test.priors_files, test.kind_keys())   # a known kind
+    _check_priors(None, test)   # a kind the priors know
     chosen = [parse_window(w, test.label) for w in windows] or None
     red = reduce_test(test, scale=scale, windows=chosen)
     paths = write_reduction(red, out)
@@ -298,7 +301,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     if problem:
         raise click.BadParameter(problem[1], param_hint=problem[0])
     test = read_bundle(bundle)
-    _check_priors([p.kind for p in test.parachutes], priors, test.priors_files, test.kind_keys())
+    _check_priors(priors, test)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
                              ess_target=ess_target or ESS_TARGET, proposal=proposal, coordinates=coordinates,
                              max_steps=max_steps)
@@ -502,7 +505,7 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
         raise click.BadParameter(f"{sorted({n for n in names if names.count(n) > 1})[0]} is given twice",
                                  param_hint="--candidates")
     test = read_bundle(bundle)
-    _check_priors([p.kind for p in test.parachutes], priors, test.priors_files, test.kind_keys())
+    _check_priors(priors, test)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,
                               sampler=replace(DIAGNOSIS_SAMPLER, workers=workers))
     on_interrupt(f"nothing was written to {out} (a diagnosis writes its files at the end); rerun the command")

@@ -450,10 +450,9 @@ def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), n
     kind in lockstep, see :mod:`cpas_bayes.stats.cluster_form`).
     """
     from cpas_bayes.stats.observations import build_observations
-    from cpas_bayes.stats.priors import load_test_priors
+    from cpas_bayes.stats.priors import priors_of_test
 
-    kind_priors, nuisance = load_test_priors([p.kind for p in test.parachutes], priors, test.priors_files,
-                                              test.kind_keys())
+    kind_priors, nuisance = priors_of_test(test, priors)
     if not test.measured_qbar:   # a logger bundle: air data fitted with the inflation
         from cpas_bayes.stats.logger_model import LoggerModel
         return LoggerModel(test, kind_priors, nuisance, decay=decay, extensions=extensions, cluster=cluster,

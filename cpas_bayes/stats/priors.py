@@ -256,6 +256,13 @@ def load_test_priors(kinds, override=None, files=(), named_in=None):
             load_nuisance_priors(sources))
 
 
+def priors_of_test(test, override=None):
+    """:func:`load_test_priors` for a flight test (a ``FlightTest``): its parachutes' kinds and its own
+    prior files, a refusal naming the test.toml key of a kind without priors."""
+    named_in = test.kind_keys()
+    return load_test_priors(list(named_in), override, test.priors_files, named_in)
+
+
 def load_nuisance_priors(override=None):
     """Per-test nuisance priors from ``priors/nuisance.toml`` (and each override file's [nuisance] table)."""
     path = PRIORS_DIR / "nuisance.toml"
