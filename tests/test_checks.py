@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -271,3 +272,24 @@ def test_write_fit_figures_writes_valid_pngs(drogue_fit, drogue_checks, tmp_path
         assert data[:8] == PNG_MAGIC, p.name
         assert len(data) > 20_000, p.name
     assert not list((tmp_path / "figures").glob(".*tmp"))    # atomic writes left no temporaries
+
+
+def test_fit_loo_and_loo_pit_equal_arviz_own(drogue_fit):
+    """The weights smoothed here in one pass give ArviZ's own PSIS-LOO and LOO-PIT on a real fit's check tree."""
+    import arviz as az
+
+    from cpas_bayes.inference.loo import loo_pit, psis_loo
+
+    tree = checks.check_tree(drogue_fit, rng=checks.as_rng(SEED))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref = az.loo(tree, var_name="total", pointwise=True)
+        pit_ref = az.loo_pit(tree, var_names=["acc", "lc"])
+    ours = psis_loo(tree, "total")
+    assert ours.elpd == pytest.approx(ref.elpd, abs=1e-9) and ours.se == pytest.approx(ref.se, abs=1e-9)
+    assert ours.p == pytest.approx(ref.p, abs=1e-9)
+    np.testing.assert_allclose(ours.elpd_i.values, ref.elpd_i.values, atol=1e-9)
+    np.testing.assert_allclose(ours.pareto_k.values, ref.pareto_k.values, atol=1e-9)
+    pit = loo_pit(tree, ["acc", "lc"])
+    for var in ("acc", "lc"):
+        np.testing.assert_allclose(pit[var].values, pit_ref[var].values, atol=1e-9)

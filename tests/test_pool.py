@@ -32,7 +32,7 @@ from cpas_bayes.population.families import make_family
 from cpas_bayes.population.hyper_posterior import pool_parameter, select_family
 from cpas_bayes.population.memo import MemoEntry, load_memo
 from cpas_bayes.population.pool import pool_fits
-from cpas_bayes.population.psis import psis_log_weights
+from cpas_bayes.stats.psis import psis_log_weights
 from cpas_bayes.population.reweighting import PerTestDraws, PoolWarning
 from cpas_bayes.stats.distributions import LogNormal, Normal, TruncNormal, Uniform
 

@@ -5,18 +5,25 @@ degrees in tables and radians inside formulas. A bundle says ``units = "US"``
 or ``"SI"``; values are converted on reading and converted back for a user's
 outputs, so a US bundle gives US results.
 
-The factors come from pint's unit definitions rather than hand-typed numbers,
-once at import; no pint quantity is carried through numerical code.
+The factors come from pint's unit definitions rather than hand-typed numbers;
+no pint quantity is carried through numerical code. pint and its registry
+(0.4 s to import and parse, in every process) are loaded on the first
+conversion that needs them: SI's factors are 1 by definition, so a run on an
+SI bundle never loads them.
 """
 
 from __future__ import annotations
 
+import functools
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-import pint
 
-_ureg = pint.UnitRegistry()
+@functools.cache
+def _registry():
+    import pint
+
+    return pint.UnitRegistry()
 
 STANDARD_GRAVITY = 9.80665  # m/s², the g that converts a load factor to acceleration
 
@@ -35,15 +42,22 @@ _LABELS = {
 
 
 def _factors(names):
-    return {q: float(_ureg.Quantity(1.0, u).to(_SI[q]).magnitude) for q, u in names.items()}
+    if names == _SI:
+        return dict.fromkeys(_SI, 1.0)
+    ureg = _registry()
+    return {q: float(ureg.Quantity(1.0, u).to(_SI[q]).magnitude) for q, u in names.items()}
 
 
 @dataclass(frozen=True)
 class UnitSystem:
-    """A bundle's unit system: factors that multiply its values into SI."""
+    """A bundle's unit system: factors that multiply its values into SI (``to_si``, computed on first use)."""
 
     name: str
-    to_si: dict
+    units: dict = field(repr=False)
+
+    @functools.cached_property
+    def to_si(self):
+        return _factors(self.units)
 
     def si(self, value, quantity):
         """Convert ``value`` in this system's ``quantity`` unit to SI."""
@@ -58,7 +72,7 @@ class UnitSystem:
         return _LABELS[self.name][quantity]
 
 
-UNIT_SYSTEMS = {"US": UnitSystem("US", _factors(_US)), "SI": UnitSystem("SI", _factors(_SI))}
+UNIT_SYSTEMS = {"US": UnitSystem("US", _US), "SI": UnitSystem("SI", _SI)}
 
 
 def unit_system(name):
@@ -93,8 +107,11 @@ def column_factor(unit, quantity):
         raise ValueError(f"{unit!r} is not a unit (unit names with integer powers joined by '*' or '/', "
                          "e.g. 'm/s^2')")
     name = _ALIASES.get((quantity, text), text)
+    ureg = _registry()
+    import pint
+
     try:
-        return float(_ureg.Quantity(1.0, name).to(_COLUMN_SI[quantity]).magnitude)
+        return float(ureg.Quantity(1.0, name).to(_COLUMN_SI[quantity]).magnitude)
     except pint.errors.DimensionalityError:
         raise ValueError(f"{unit!r} is not a unit of {quantity}") from None
     except (pint.errors.PintError, AttributeError, TypeError, ValueError, ZeroDivisionError):

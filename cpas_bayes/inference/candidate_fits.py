@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import itertools
 import time as _time
-import warnings
 import zlib
 from dataclasses import dataclass, replace
 
@@ -26,6 +25,7 @@ import numpy as np
 
 from cpas_bayes.inference.fit import Fit, SamplerOptions, fit_model, prepare_model
 
+from cpas_bayes.inference.loo import psis_loo as _tree_loo
 from cpas_bayes.inference.start import find_map
 from cpas_bayes.stats.discrepancy import Discrepancy, residual_envelope
 from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
@@ -100,12 +100,8 @@ class ScreenResult:
 
 
 def psis_loo(tree):
-    """``arviz.loo`` on the joint per-bin log-likelihood, pointwise values kept."""
-    import arviz as az
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
-        return az.loo(tree, var_name="total", pointwise=True)
+    """``arviz.loo`` on the joint per-bin log-likelihood, pointwise values kept (:func:`.loo.psis_loo`)."""
+    return _tree_loo(tree, "total")
 
 
 def breathing_frequency_guess(model, theta, band=BREATHING_BAND_HZ):

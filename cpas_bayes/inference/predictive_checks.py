@@ -73,7 +73,6 @@ LOO-PIT needs one per channel and uses each channel's marginal density.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,6 +83,7 @@ from scipy.signal import savgol_filter
 from cpas_bayes.core.files import jsonable
 from cpas_bayes.inference.check_draws import (ACC_CHANNEL, as_rng, check_tree, posterior_matrix, posterior_median,
                                               predict_draws, replicate_data)
+from cpas_bayes.inference.loo import loo_pit as psis_loo_pit
 from cpas_bayes.inference.residuals import LJUNG_BOX_LAGS, PARETO_K_LIMIT, ResidualReport, residuals
 
 PEAK_SMOOTHING_BINS = 5          # quadratic Savitzky–Golay window, bins
@@ -355,21 +355,17 @@ class LooPitResult:
 
 
 def loo_pit(fit, tree=None) -> LooPitResult:
-    """LOO-PIT per channel (``accelerometer``, ``load cell <id>``) by ``arviz.loo_pit``.
+    """LOO-PIT per channel (``accelerometer``, ``load cell <id>``) by ``arviz.loo_pit`` (weights from :mod:`.loo`).
 
     Table columns: channel, n, ks_distance, ks_p_value (optimistic: correlated
     bins), dkw_band (95 % simultaneous half-width), pit_mean, pit_sd,
     frac_outside_90 (share of PIT values outside [0.05, 0.95], 0.10 if calibrated).
     """
-    import arviz as az
-
     tree = check_tree(fit) if tree is None else tree
     if "acc" not in tree["log_likelihood"]:
         raise ValueError("LOO-PIT needs the log-likelihood per channel; this model's likelihood "
                          "(an extension's) gives only the total per time bin")
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
-        pit = az.loo_pit(tree, var_names=[c for c in ("acc", "lc") if c in tree["observed_data"]])
+    pit = psis_loo_pit(tree, [c for c in ("acc", "lc") if c in tree["observed_data"]])
     # The PSIS-weighted sums can overshoot [0, 1] by round-off; a PIT is a probability.
     values = {ACC_CHANNEL: np.clip(np.asarray(pit["acc"].values, float), 0.0, 1.0)}
     if "lc" in pit:

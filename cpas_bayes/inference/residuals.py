@@ -25,7 +25,6 @@ PSIS-LOO uses the joint log-likelihood of all channels of a bin (``total``).
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +33,7 @@ from scipy import stats
 
 from cpas_bayes.core.summaries import quantile_summary
 from cpas_bayes.inference.check_draws import ACC_CHANNEL, channel_sigma, check_tree, posterior_median
+from cpas_bayes.inference.loo import psis_loo
 
 LJUNG_BOX_LAGS = 10              # Ljung–Box lags (fewer when a phase is short: n // 4)
 PARETO_K_LIMIT = 0.7             # PSIS-LOO: importance sampling unreliable above this
@@ -201,11 +201,9 @@ def residuals(fit, tree=None) -> ResidualReport:
     posterior mean error multiplier. The table has, per channel × phase (and
     ``all``): n, mean, sd, acf1 (lag-1 autocorrelation), ljung_box_q/_lags/_p
     (h = min(10, n // 4) lags). ``pareto_k`` is PSIS-LOO's k per time bin from
-    ``arviz.loo(tree, var_name="total", pointwise=True)``; bins above 0.7 are
+    ``arviz.loo(tree, var_name="total", pointwise=True)`` (weights from :mod:`.loo`); bins above 0.7 are
     listed in ``high_pareto_k`` with the accelerometer's phase there.
     """
-    import arviz as az
-
     tree = check_tree(fit) if tree is None else tree
     model, obs = fit.model, fit.model.obs
     post = fit.tree["posterior"]
@@ -223,10 +221,7 @@ def residuals(fit, tree=None) -> ResidualReport:
     for channel, r in res.items():
         rows.extend(_phase_rows(channel, r, phases[channel]))
 
-    with warnings.catch_warnings():
-        # High Pareto k is reported below, bin by bin; arviz's generic warning adds nothing.
-        warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
-        loo = az.loo(tree, var_name="total", pointwise=True)
+    loo = psis_loo(tree, "total")
     k = np.asarray(loo.pareto_k.values, float)
     high = np.flatnonzero(k > PARETO_K_LIMIT)
     high_table = pd.DataFrame({"time": obs.time[high], "pareto_k": k[high],

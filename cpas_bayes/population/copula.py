@@ -13,7 +13,7 @@ as :mod:`cpas_bayes.population.reweighting` does for one parameter.
 Five hyper-parameters (flat ρ on (−1, 1), the marginals' hyper-priors) are
 too many for a grid: the hyper-posterior is sampled by importance sampling
 from a multivariate t around its Laplace approximation (Pareto-smoothed,
-:mod:`cpas_bayes.population.psis`), or by emcee when the smoothed weights' k̂
+:mod:`cpas_bayes.stats.psis`), or by emcee when the smoothed weights' k̂
 exceeds 0.7. The ρ = 0 model is fitted the same way to the same joint draws,
 and PSIS leave-one-test-out elpd compares the two (a test whose PSIS k̂
 exceeds 0.7 — few tests, an influential one — gets its LOO term from a refit
@@ -32,7 +32,7 @@ import numpy as np
 from scipy import optimize, special
 
 from cpas_bayes.population.hyper_posterior import default_hyper_scale, half_cauchy_logpdf
-from cpas_bayes.population.psis import PARETO_K_MAX, psis_log_weights, psis_loo
+from cpas_bayes.stats.psis import PARETO_K_MAX, psis_log_weights, psis_loo
 from cpas_bayes.population.reweighting import CHUNK_ELEMENTS, PerTestDraws, log_mean_exp, with_batch_axis
 
 PAIR = ("n_p", "expopen")

@@ -80,7 +80,7 @@ from cpas_bayes.population.copula import PAIR, pool_pair
 from cpas_bayes.population.families import FAMILY_NAMES, make_family
 from cpas_bayes.population.hyper_posterior import FamilySelection, ParameterPool, default_hyper_scale, select_family
 from cpas_bayes.population.memo import Memo, MemoEntry
-from cpas_bayes.population.psis import PARETO_K_MAX
+from cpas_bayes.stats.psis import PARETO_K_MAX
 from cpas_bayes.population.reweighting import ESS_MIN, PerTestDraws, PoolWarning
 
 POOLED_PARAMETERS = ("n_p", "n", "expopen", "ck", "tk", "eps")   # pooled per stage (n derived by Eq. 18)
