@@ -525,3 +525,23 @@ def test_a_pipe_in_place_of_data_csv_is_refused_not_read(example_dir):
             read_bundle(folder)
     finally:
         signal.alarm(0)
+
+
+
+def test_unit_factors_are_pints_and_reading_a_bundle_does_not_load_pint():
+    """The US factors are written from the 1959 definitions; pint derives the same. pint (0.4 s to import
+    and parse per process) loads only for a logger column's free-form unit, not to read a bundle."""
+    import subprocess
+    import sys
+
+    from cpas_bayes.core.units import pint_factors
+
+    for name, system in UNIT_SYSTEMS.items():
+        derived = pint_factors(name)
+        assert set(derived) == set(system.to_si)
+        for quantity, factor in derived.items():
+            assert system.to_si[quantity] == pytest.approx(factor, rel=1e-14), (name, quantity)
+    script = ("import sys; from cpas_bayes.data.bundle import read_bundle, example_bundles; "
+              "tests = [read_bundle(p) for p in example_bundles()]; print('pint' in sys.modules, tests[0].units.name)")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "US"]
