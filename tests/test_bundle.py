@@ -426,9 +426,25 @@ FUZZED = [
      "separated by semicolons"),
     ("tab-separated CSV", lambda f: _separated_by(f, "\t"), "data.csv", "row 1 (header)", "separated by tabs"),
     ("data.csv a folder", lambda f: ((f.folder / "data.csv").unlink(), (f.folder / "data.csv").mkdir()),
-     "data.csv", None, "not a regular file"),
+     "data.csv", None, "is a folder, not a file"),
+    ("test.toml a folder", lambda f: ((f.folder / "test.toml").unlink(), (f.folder / "test.toml").mkdir()),
+     "test.toml", None, "is a folder, not a file"),
+    ("test.toml a broken link", lambda f: _replace_by_link(f.folder / "test.toml", f.folder / "gone.toml"),
+     "test.toml", None, "is a link to nothing"),
+    ("test.toml a loop of links", lambda f: _replace_by_link(f.folder / "test.toml", f.folder / "other.toml",
+                                                             loop=True), "test.toml", None, "a loop of links"),
+    ("data.csv a loop of links", lambda f: _replace_by_link(f.folder / "data.csv", f.folder / "other.csv",
+                                                            loop=True), "data.csv", None, "a loop of links"),
 ]
 REFUSALS += FUZZED
+
+
+def _replace_by_link(path, target, loop=False):
+    """``path`` becomes a symbolic link to ``target``, which is missing or (``loop``) links back to it."""
+    path.unlink()
+    path.symlink_to(target)
+    if loop:
+        target.symlink_to(path)
 
 
 @pytest.mark.parametrize("defect, file, place, problem", [case[1:] for case in REFUSALS],
@@ -521,7 +537,7 @@ def test_a_pipe_in_place_of_data_csv_is_refused_not_read(example_dir):
     signal.signal(signal.SIGALRM, lambda *_: pytest.fail("read_bundle blocked on the pipe"))
     signal.alarm(30)
     try:
-        with pytest.raises(BundleError, match="data.csv: not a regular file"):
+        with pytest.raises(BundleError, match="data.csv: not a regular file .a pipe"):
             read_bundle(folder)
     finally:
         signal.alarm(0)

@@ -66,6 +66,9 @@ def files(tmp_path_factory):
     (root / "bad.toml").write_text("x = [\n")
     (root / "latin1.toml").write_bytes("name = 'Düse'\n".encode("latin-1"))
     (root / "a-file").write_text("not a folder\n")
+    (root / "dangling").symlink_to(root / "nowhere")
+    (root / "loop1").symlink_to(root / "loop2")
+    (root / "loop2").symlink_to(root / "loop1")
     return root
 
 
@@ -114,6 +117,9 @@ def bad_options(f):
         ("reduce --window reversed", ["reduce", DROGUE, "--out", "OUT", "--window", "5:1"], "--window 5:1"),
         ("reduce --out is a file", ["reduce", DROGUE, "--out", f / "a-file"], "--out"),
         ("reduce --out under a file", ["reduce", DROGUE, "--out", f / "a-file" / "x"], "--out"),
+        ("reduce --out a broken link", ["reduce", DROGUE, "--out", f / "dangling"], "is a link to nothing"),
+        ("fit --out a loop of links", fit + ["--out", f / "loop1"], "a loop of links"),
+        ("fit --priors a loop of links", fit + ["--priors", f / "loop1"], "a loop of links"),
         ("synth --magnitude nan", synth + ["--effect", "added_mass", "--magnitude", "nan"], "--magnitude"),
         ("synth --magnitude inf", synth + ["--effect", "sensor_lag", "--magnitude", "inf"], "--magnitude"),
         ("synth --magnitude -inf", synth + ["--effect", "friction_drift", "--magnitude", "-inf"], "--magnitude"),
@@ -138,7 +144,7 @@ def bad_options(f):
         ("fit --seed -1", fit + ["--seed", "-1"], "--seed"),
         ("fit --decay", fit + ["--decay", "cubic"], "--decay"),
         ("fit --priors missing", fit + ["--priors", f / "nowhere.toml"], "--priors"),
-        ("fit --priors a folder", fit + ["--priors", f], "--priors"),
+        ("fit --priors a folder", fit + ["--priors", f], "is a folder, not a file"),
         ("fit --priors not TOML", fit + ["--priors", f / "bad.toml"], "--priors"),
         ("fit --priors not UTF-8", fit + ["--priors", f / "latin1.toml"], "--priors"),
         ("fit --scheduler unreachable", fit + ["--scheduler", unreachable], "--scheduler"),

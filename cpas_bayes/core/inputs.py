@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import difflib
 import json
+import os
 import sys
 import tomllib
 from pathlib import Path
@@ -53,14 +54,30 @@ MAX_JSON_BYTES = 50_000_000
 MAX_JSON_DEPTH = 64
 
 
-def read_toml(path, error=InputError, fix_syntax="correct the TOML syntax at that line"):
+def not_a_file(path):
+    """Why an existing ``path`` is not a regular file to read (a broken link or loop of links, a folder, a pipe
+    or device), or None if it is one or is not there at all."""
+    path = Path(path)
+    if not os.path.lexists(path) or path.is_file():
+        return None
+    if path.is_symlink() and not path.exists():
+        return "is a link to nothing (a broken symbolic link, or a loop of links)"
+    if path.is_dir():
+        return "is a folder, not a file"
+    return "not a regular file (a pipe, a socket or a device)"
+
+
+def read_toml(path, error=InputError, fix_syntax="correct the TOML syntax at that line",
+              fix_file="give the path of the .toml file itself"):
     """The document of TOML file ``path``, checked against the limits above.
 
-    ``error`` is the :class:`InputError` subclass to raise (e.g. ``BundleError``).
+    ``error`` is the :class:`InputError` subclass to raise (e.g. ``BundleError``); ``fix_file`` the fix when
+    ``path`` is there but not a file (a folder, a broken link, a pipe).
     """
     path = Path(path)
-    if path.is_dir():
-        raise error(path, "", "is a folder, not a TOML file", "give the path of the .toml file")
+    problem = not_a_file(path)
+    if problem:
+        raise error(path, "", problem, fix_file)
     if not path.is_file():
         raise error(path, "", "file not found", "check the path")
     size = path.stat().st_size

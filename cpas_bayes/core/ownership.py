@@ -256,6 +256,9 @@ def check_output(path, option="--out") -> Path:
             raise OutputError(path, "", f"the name '{part[:40]}…' has {len(os.fsencode(part))} bytes; the file "
                                         f"system allows {name_max}", f"use shorter names, or {fix_other}")
     if os.path.lexists(path):
+        if path.is_symlink() and not path.exists():
+            raise OutputError(path, "", "is a link to nothing (a broken symbolic link, or a loop of links); "
+                                        "the link was left as it is", f"{fix_other}, or remove the link")
         if not path.is_dir():
             raise OutputError(path, "", f"exists and is a file, not a folder ({option} must be a folder; the file "
                                         "was left as it is)", f"{fix_other} (new, empty, or written by cpas-bayes)")

@@ -240,10 +240,10 @@ class TomlReader:
 
 
 def _read_toml(path):
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):     # a broken link, a folder, a pipe: read_toml says which
         raise BundleError(path, "", "file not found",
                           f"a bundle folder needs {TOML_NAME} and {CSV_NAME} (docs/test-bundle.md)")
-    return read_toml(path, error=BundleError)
+    return read_toml(path, error=BundleError, fix_file=f"put the bundle's {TOML_NAME} there as a plain file")
 
 
 def _column_key(reader, entry, key, where, pid, owners):

@@ -10,13 +10,12 @@ column is used, so a bad cell is reported by its row and column.
 from __future__ import annotations
 
 import io
-import os
 
 import numpy as np
 import pandas as pd
 
 from cpas_bayes.core.errors import BundleError
-from cpas_bayes.core.inputs import shown, text_problem
+from cpas_bayes.core.inputs import not_a_file, shown, text_problem
 from cpas_bayes.data.limits import MAX_COLUMN_NAME, MAX_CSV_BYTES, MAX_CSV_COLUMNS, MAX_CSV_ROWS
 
 _HEADER_FIX = "start data.csv with a comma-separated header such as time,G,G_sigma,..."
@@ -24,8 +23,9 @@ _TRAILING_FIX = "remove the comma at the end of every line (an export option of 
 
 
 def _missing(path, other):
-    if os.path.lexists(path):   # there, but a folder, a pipe, a device or a broken link
-        return BundleError(path, "", "not a regular file", f"put the bundle's {path.name} there as a plain file")
+    problem = not_a_file(path)
+    if problem:   # there, but a folder, a pipe, a device or a broken link
+        return BundleError(path, "", problem, f"put the bundle's {path.name} there as a plain file")
     return BundleError(path, "", "file not found", f"a bundle folder needs {other} and {path.name} "
                                                    "(docs/test-bundle.md)")
 
