@@ -12,9 +12,14 @@ bundle's channels and units, and the refusals of bad maps and files.
 from __future__ import annotations
 
 import json
+import os
+import re
+import subprocess
+import sys
 from datetime import datetime, timedelta, timezone
 
 import numpy as np
+import pandas as pd
 import pytest
 import tomli_w
 
@@ -285,11 +290,18 @@ def test_output_folder_not_ours_is_refused_untouched(tmp_path, sim, capsys):
     (lambda d: d["test"]["vehicle"].update(weight_sigm=1.0), "key 'test.vehicle.weight_sigm'"),
     (lambda d: d["test"]["sigma"].pop("G"), "test.sigma.G"),
     (lambda d: d.update(reference="gps"), "no logger named 'gps'"),
+    # a skip_rows past the end: pandas made a set of 10**9 row numbers (22 GB) before the file ran out
+    (lambda d: d["logger"]["imu"].update(skip_rows=10**9),
+     "key 'logger.imu.skip_rows': skip_rows 1000000000 is beyond the file's"),
+    (lambda d: (d["logger"]["gnss"].pop("offset_hint"), d["logger"]["gnss"].update(offset=1e300)),
+     "key 'logger.gnss.offset': 1e+300 s is more than the 1e+10 s"),
+    (lambda d: d["logger"]["gnss"].update(offset_hint=-2e10), "key 'logger.gnss.offset_hint': -2e+10 s"),
 ])
-def test_bad_maps_are_refused_naming_the_key(tmp_path, sim, capsys, edit, expected):
+def test_bad_maps_are_refused_naming_the_key(tmp_path, sim, capsys, monkeypatch, edit, expected):
     write_loggers(tmp_path, sim)
     doc = map_document()
     edit(doc)
+    monkeypatch.setattr(pd, "read_csv", None)  # a map is refused before any logger file is parsed
     err = _refused(capsys, tmp_path, doc)
     assert expected in err and "map.toml" in err
     assert not (tmp_path / "bundle").exists()
@@ -311,6 +323,87 @@ def test_bad_logger_files_are_refused_naming_the_row(tmp_path, sim, capsys):
     assert "imu.csv, row 4, column 't_ms'" in err or "imu.csv, row 4, column 'ax'" in err
 
 
+@pytest.mark.parametrize("header, expected", [
+    ("t_ms,ax,ay,ax", "the column name 'ax' is in columns 2 and 4"),
+    ("t_ms,ax,ax.1,ax", "the column name 'ax' is in columns 2 and 4"),       # pandas would call the last 'ax.2'
+    ("t_ms, ax,ay,az,ax ", "the column name 'ax' is in columns 2 and 5"),    # names are compared stripped
+])
+def test_a_repeated_column_name_is_refused(tmp_path, sim, capsys, header, expected):
+    """pandas renames a second 'ax' to 'ax.1' and the map's 'ax' would silently read the first."""
+    write_loggers(tmp_path, sim)
+    lines = (tmp_path / "imu.csv").read_text().splitlines()
+    lines = [header] + [row + ",0.0" * (header.count(",") - 3) for row in lines[1:]]
+    (tmp_path / "imu.csv").write_text("\n".join(lines) + "\n")
+    err = _refused(capsys, tmp_path, map_document())
+    assert "imu.csv, row 1 (header): " + expected in err and "give each column its own header name" in err
+    assert not (tmp_path / "bundle").exists()
+
+
+def test_a_column_named_like_a_pandas_duplicate_is_its_own_column(tmp_path, sim):
+    """'ax' and 'ax.1' are two names, not a duplicate: each reads its own column, with the map's skip_rows."""
+    write_loggers(tmp_path, sim)
+    lines = (tmp_path / "imu.csv").read_text().splitlines()
+    lines[0] = "t_ms,ax.1,ax,az"
+    (tmp_path / "imu.csv").write_text("logger 7\r\nfirmware 1.2\r\n\r\n" + "\n".join(lines) + "\n")
+    doc = map_document()
+    doc["logger"]["imu"]["skip_rows"] = 3
+    doc["logger"]["imu"]["channels"]["accel"]["columns"] = ["ax", "ax.1", "az"]   # y first, then x: any order
+    out = tmp_path / "b"
+    record = import_loggers(read_import_map(write_map(tmp_path, doc), out), out).records["imu"]
+    cells = np.loadtxt(tmp_path / "imu.csv", delimiter=",", skiprows=4)
+    assert np.array_equal(record.channels["accel"], cells[:, [2, 1, 3]])
+    assert np.allclose(record.time, cells[:, 0] / 1000, rtol=1e-12, atol=0)
+
+
+def test_skip_rows_is_bounded_by_the_line_count(tmp_path, sim, capsys, monkeypatch):
+    """A skip_rows leaving no header is refused with the file's line count, before pandas parses anything."""
+    write_loggers(tmp_path, sim)
+    lines = len((tmp_path / "imu.csv").read_text().splitlines())
+    monkeypatch.setattr(pd, "read_csv", None)
+    for skip in (lines, lines + 1):
+        doc = map_document()
+        doc["logger"]["imu"]["skip_rows"] = skip
+        err = _refused(capsys, tmp_path, doc)
+        assert f"map.toml, key 'logger.imu.skip_rows': skip_rows {skip} is beyond the file's {lines:,} lines" in err
+        assert f"at most {lines - 1:,}" in err
+    (tmp_path / "gnss.csv").write_text("time,vn\n1,2")   # a last line without a line end is a line
+    doc = map_document()
+    doc["logger"]["gnss"]["skip_rows"] = 2
+    assert "skip_rows 2 is beyond the file's 2 lines" in _refused(capsys, tmp_path, doc)
+
+
+AS_LIMITED = """
+import resource, sys
+from cpas_bayes.app.cli import main
+
+size = next(int(line.split()[1]) * 1024 for line in open("/proc/self/status") if line.startswith("VmSize:"))
+hard = resource.getrlimit(resource.RLIMIT_AS)[1]
+limit = size + int(sys.argv[3])
+resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
+sys.exit(main(["import", sys.argv[1], "--out", sys.argv[2]]))
+"""
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads the address space size from /proc")
+def test_a_large_skip_rows_within_the_file_costs_no_memory_per_row(tmp_path, sim):
+    """20 million blank lines before the header: skipping them takes no memory per line.
+
+    pandas turns skiprows=N into a set of N row numbers (here ~1.7 GB); the import runs with its address
+    space limited to 600 MB above what its imports took (it needs ~250 MB).
+    """
+    write_loggers(tmp_path, sim)
+    skip = 20_000_000
+    text = (tmp_path / "imu.csv").read_bytes()
+    (tmp_path / "imu.csv").write_bytes(b"\n" * skip + text)
+    doc = map_document()
+    doc["logger"]["imu"]["skip_rows"] = skip
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-c", AS_LIMITED, str(write_map(tmp_path, doc)), str(tmp_path / "b"),
+                           str(600 * 2**20)], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert read_bundle(tmp_path / "b").name == "DT-sim"
+
+
 def test_no_release_in_the_record_is_said_with_the_fix(tmp_path, capsys):
     t = np.arange(0.0, 30.0, 0.01)
     rng = np.random.default_rng(6)
@@ -324,6 +417,35 @@ def test_no_release_in_the_record_is_said_with_the_fix(tmp_path, capsys):
     del doc["logger"]["gnss"]["offset_hint"]
     err = _refused(capsys, tmp_path, doc)
     assert "imu.csv" in err and "no release" in err and "[events] release" in err
+
+
+def test_a_logger_file_linked_from_outside_the_map_folder_is_refused(tmp_path, sim, capsys):
+    """The path is checked where it leads, not only as text: a symbolic link out of the folder is refused."""
+    write_loggers(tmp_path, sim)
+    drop = tmp_path / "drop"
+    drop.mkdir()
+    (tmp_path / "imu.csv").rename(drop / "imu.csv")
+    (drop / "gnss.csv").symlink_to(tmp_path / "gnss.csv")
+    doc = map_document()
+    code, _, err = run(capsys, "import", write_map(drop, doc), "--out", drop / "bundle")
+    assert code == 2 and "Fix:" in err
+    assert "map.toml, key 'logger.gnss.file': 'gnss.csv' is a link leading outside the map folder" in err
+    assert not (drop / "bundle").exists()
+    (drop / "gnss.csv").unlink()          # a link that stays inside the folder is a file of the folder
+    (tmp_path / "gnss.csv").rename(drop / "gnss-2024.csv")
+    (drop / "gnss.csv").symlink_to("gnss-2024.csv")
+    assert read_import_map(drop / "map.toml", drop / "bundle").logger("gnss").path == drop / "gnss.csv"
+
+
+def test_a_clock_offset_leaving_no_common_record_prints_readable_numbers(tmp_path, sim, capsys):
+    """An offset within the bound (a wall clock against an elapsed one) but wrong: the span is said in %g."""
+    write_loggers(tmp_path, sim)
+    doc = map_document()
+    del doc["logger"]["gnss"]["offset_hint"]
+    doc["logger"]["gnss"]["offset"] = 5e9
+    err = _refused(capsys, tmp_path, doc)
+    assert "map.toml, key 'record'" in err and "(5e+09 … " in err
+    assert not re.search(r"\d{12}", err)
 
 
 def test_template_and_events_given_in_the_map(tmp_path, sim, capsys):

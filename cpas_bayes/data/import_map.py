@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 
@@ -22,7 +23,7 @@ from cpas_bayes.core.errors import BundleError, InputError
 from cpas_bayes.core.inputs import check_keys, check_name, nearest, read_toml, shown
 from cpas_bayes.core.units import column_factor
 from cpas_bayes.data.bundle import parse_test_document
-from cpas_bayes.data.limits import MAX_DURATION, MAX_START_SIGMA
+from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION, MAX_START_SIGMA
 
 MAP_KEYS = ("reference", "template", "record", "events", "logger", "test")
 LOGGER_KEYS = ("file", "time", "clock", "offset", "offset_hint", "search", "skip_rows", "delimiter", "channels")
@@ -50,6 +51,41 @@ _UNIT_EXAMPLES = {"acceleration": "'m/s^2', 'ft/s^2' or 'g'", "speed": "'m/s', '
                   "angle": "'deg' or 'rad'", "length": "'m' or 'ft'", "density": "'kg/m^3' or 'slug/ft^3'",
                   "pressure": "'Pa', 'kPa', 'psf' or 'psi'", "force": "'N', 'kN' or 'lbf'",
                   "time": "'s', 'ms', 'us' or 'iso'"}
+
+# A clock offset's (and offset_hint's) magnitude, s. The widest legitimate gap is between a wall clock and an
+# elapsed one: ISO times are seconds since 1970 (pandas' timestamps end in 2262, 9.2e9 s) and an elapsed clock
+# counts from power-on, so an offset reaches ~1.7e9 s today; a day would refuse that. Beyond 1e10 s (317 years)
+# it is a typo or a unit error, and would overflow the record's arithmetic into meaningless numbers.
+MAX_CLOCK_OFFSET = 1e10
+_LINE_END = re.compile(rb"\r\n|\r|\n")   # pandas' C parser ends a line at any of them
+_CHUNK = 1 << 20
+
+
+def skip_lines(handle, n):
+    """Pass ``n`` lines of a binary file from its start: (byte offset after them, lines passed).
+
+    Streams 1 MB at a time, so memory does not grow with the file or with ``n``; fewer than ``n`` lines
+    passed means the file ended first. The handle's position is left undefined: seek to the offset.
+    """
+    offset = seen = 0
+    carry = b""
+    handle.seek(0)
+    while seen < n:
+        data = handle.read(_CHUNK)
+        chunk, carry = carry + data, b""
+        if not chunk:
+            break
+        if data and chunk.endswith(b"\r"):   # its \n may open the next chunk: one line end, not two
+            chunk, carry = chunk[:-1], b"\r"
+        ends = chunk.count(b"\n") + chunk.count(b"\r") - chunk.count(b"\r\n")
+        if seen + ends < n:
+            seen, offset = seen + ends, offset + len(chunk)
+            continue
+        for match in _LINE_END.finditer(chunk):
+            seen += 1
+            if seen == n:
+                return offset + match.end(), seen
+    return offset, seen
 
 
 @dataclass(frozen=True)
@@ -156,7 +192,7 @@ class _Map:
         return float(value)
 
     def local_file(self, value, where, what):
-        """A path relative to the map's folder, inside it; the file must exist."""
+        """A path relative to the map's folder, inside it (also where its links lead); the file must exist."""
         if not isinstance(value, str) or not value.strip():
             self.fail(where, f"must be a file name, got {shown(value)}", f"write the {what}'s path relative "
                       "to the map's folder")
@@ -166,6 +202,11 @@ class _Map:
                       "a map reads only files in its own folder and below it",
                       "put the map beside the logger files (or above them) and give paths relative to it")
         path = self.path.parent / rel
+        folder, target = self.path.parent.resolve(), path.resolve(strict=False)
+        if not target.is_relative_to(folder):   # the text stays inside; a symbolic link on the way leaves
+            self.fail(where, f"{shown(value)} is a link leading outside the map folder (to {shown(str(target), 80)}): "
+                      "a map reads only files in its own folder and below it",
+                      "copy the file into the map's folder (or put the map above both) instead of linking to it")
         if not path.is_file():
             self.fail(where, f"{what} {path} not found" if not path.exists() else f"{path} is not a file",
                       "check the path (relative to the map's folder)")
@@ -239,8 +280,8 @@ def _logger(m, name, entry, quantities):
         m.fail(f"{where}.offset", f"unknown offset {shown(offset)}",
                "give the seconds to add to this logger's time, or \"auto\" (cross-correlation)")
     if offset != "auto":
-        offset = m.number(entry, "offset", f"{where}.offset")
-    hint = m.number(entry, "offset_hint", f"{where}.offset_hint")
+        offset = _clock_offset(m, entry, "offset", where)
+    hint = _clock_offset(m, entry, "offset_hint", where)
     search = m.number(entry, "search", f"{where}.search", positive=True)
     if offset != "auto" and (hint is not None or search is not None):
         m.fail(f"{where}.{'offset_hint' if hint is not None else 'search'}", "applies only to offset = \"auto\"",
@@ -249,6 +290,7 @@ def _logger(m, name, entry, quantities):
     if isinstance(skip, bool) or not isinstance(skip, int) or skip < 0:
         m.fail(f"{where}.skip_rows", f"must be a whole number ≥ 0, got {shown(skip)}",
                "give the number of lines before the header row")
+    _check_skip_rows(m, path, skip, f"{where}.skip_rows")
     delimiter = m.string(entry, "delimiter", f"{where}.delimiter", default=",")
     if len(delimiter) != 1:
         m.fail(f"{where}.delimiter", f"must be one character, got {shown(delimiter)}", "write delimiter = \",\"")
@@ -257,6 +299,31 @@ def _logger(m, name, entry, quantities):
     channels = {key: _channel(m, key, value, f"{where}.channels.{key}", quantities) for key, value in raw.items()}
     return LoggerSpec(name, path, column, unit, factor, clock, None if offset == "auto" else offset, hint, search,
                       skip, delimiter, channels)
+
+
+def _clock_offset(m, entry, key, where):
+    value = m.number(entry, key, f"{where}.{key}")
+    if value is not None and abs(value) > MAX_CLOCK_OFFSET:
+        m.fail(f"{where}.{key}", f"{value:.6g} s is more than the {MAX_CLOCK_OFFSET:.0e} s (317 years) two clocks "
+               "can differ by, even a wall clock (s since 1970) against an elapsed one",
+               "give the seconds to add to this logger's time (t_ref = t_logger + offset), not another unit")
+    return value
+
+
+def _check_skip_rows(m, path, skip, key):
+    """Refuse a skip_rows that passes the whole file, before anything parses it (pandas would allocate per row)."""
+    if skip == 0 or path.stat().st_size > MAX_CSV_BYTES:   # a larger file is refused by its size before it is read
+        return
+    with open(path, "rb") as handle:
+        offset, seen = skip_lines(handle, skip)
+        size = handle.seek(0, 2)
+        if seen == skip and offset < size:   # a line follows the skipped ones: the header
+            return
+        handle.seek(max(size - 1, 0))
+        lines = seen + (handle.read(1) not in (b"", b"\n", b"\r"))   # a last line without a line end counts
+    m.fail(key, f"skip_rows {skip} is beyond the file's {lines:,} line{'s' * (lines != 1)}: {path.name} has no "
+           "header row after them", "give the number of lines before the header row" +
+           (f" (at most {lines - 1:,})" if lines else ", or a logger file that is not empty"))
 
 
 def _test_document(m, doc):

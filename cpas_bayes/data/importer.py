@@ -29,6 +29,8 @@ The steps, each refusing bad input with the file, the place and the fix:
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import math
 from dataclasses import dataclass, replace
@@ -44,7 +46,7 @@ from cpas_bayes.core.units import STANDARD_GRAVITY
 from cpas_bayes.data.bundle import FlightTest, read_bundle
 from cpas_bayes.data.bundle_csv import parse_numbers
 from cpas_bayes.data.bundle_write import write_bundle
-from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
+from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map, skip_lines
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
 from cpas_bayes.data.logger_events import (Event, EventNotFound, align_clocks, detect_line_stretch, detect_release,
                                            from_acceleration, from_velocity, from_vertical_speed, sample_interval)
@@ -131,16 +133,44 @@ def _fail_file(spec, where, problem, fix):
     raise InputError(spec.path, where, problem, fix)
 
 
+def _at_header(spec):
+    """The logger file, binary, at its header row: skip_rows lines passed here, streaming.
+
+    pandas is never given skip_rows: it turns skiprows=N into a set of N row numbers.
+    """
+    handle = open(spec.path, "rb")
+    handle.seek(skip_lines(handle, spec.skip_rows)[0])
+    return handle
+
+
 def _header(spec):
-    try:
-        frame = pd.read_csv(spec.path, sep=spec.delimiter, skiprows=spec.skip_rows, nrows=0, dtype=str,
-                            encoding="utf-8-sig", index_col=False)
-    except UnicodeDecodeError:
-        _fail_file(spec, "", "not UTF-8 text", "save the logger file as UTF-8 CSV")
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, ValueError) as exc:
-        _fail_file(spec, f"row {spec.skip_rows + 1} (header)", f"no readable header ({exc})",
-                   "set skip_rows to the number of lines before the header, and delimiter to the file's separator")
-    return [str(c).strip() for c in frame.columns]
+    """The header row's names (stripped), read with the csv module; refused unless every name is unique."""
+    where = f"row {spec.skip_rows + 1} (header)"
+    with _at_header(spec) as handle:
+        try:
+            row = next(csv.reader(io.TextIOWrapper(handle, encoding="utf-8-sig", newline=""),
+                                  delimiter=spec.delimiter), [])
+        except UnicodeDecodeError:
+            _fail_file(spec, "", "not UTF-8 text", "save the logger file as UTF-8 CSV")
+        except (csv.Error, ValueError) as exc:
+            _fail_file(spec, where, f"no readable header ({exc})",
+                       "set skip_rows to the number of lines before the header, and delimiter to the file's "
+                       "separator")
+    header = [name.strip() for name in row]
+    if not any(header):
+        _fail_file(spec, where, "no header: the line is blank (or the file ends)" if not row else
+                   "no header: every name is blank",
+                   "set skip_rows to the number of lines before the header row")
+    places = {}
+    for k, name in enumerate(header, 1):
+        if name:   # unnamed columns (a trailing delimiter) cannot be mapped, so they cannot be confused
+            places.setdefault(name, []).append(k)
+    for name, ks in places.items():
+        if len(ks) > 1:   # pandas would rename the second 'ax.1' and the map's 'ax' would silently mean the first
+            numbers = ", ".join(map(str, ks[:-1])) + f" and {ks[-1]}"
+            _fail_file(spec, where, f"the column name '{shown(name, 60, quote=False)}' is in columns {numbers}",
+                       "give each column its own header name (the map names columns by their header)")
+    return header
 
 
 def _cells(spec, needed):
@@ -152,16 +182,18 @@ def _cells(spec, needed):
                        f"missing column, named by the map ({key})" + did_you_mean(column, header),
                        f"correct the column name in the map (the file's columns: {listed}), or set skip_rows / "
                        "delimiter if the header was misread")
-    wanted = {c for c, _ in needed}
-    try:
-        frame = pd.read_csv(spec.path, sep=spec.delimiter, skiprows=spec.skip_rows, dtype=str, encoding="utf-8-sig",
-                            index_col=False, keep_default_na=False, skip_blank_lines=False,
-                            usecols=lambda c: str(c).strip() in wanted)
-    except UnicodeDecodeError:
-        _fail_file(spec, "", "not UTF-8 text", "save the logger file as UTF-8 CSV")
-    except (pd.errors.ParserError, ValueError) as exc:
-        _fail_file(spec, "", f"not a readable CSV table ({exc})", "make every row have as many cells as the header")
-    frame.columns = [str(c).strip() for c in frame.columns]
+    # columns by position in the header read above: pandas' own names (mangled or not) play no part
+    positions = sorted({header.index(c) for c, _ in needed})
+    with _at_header(spec) as handle:
+        try:
+            frame = pd.read_csv(handle, sep=spec.delimiter, dtype=str, encoding="utf-8-sig", index_col=False,
+                                keep_default_na=False, skip_blank_lines=False, usecols=positions)
+        except UnicodeDecodeError:
+            _fail_file(spec, "", "not UTF-8 text", "save the logger file as UTF-8 CSV")
+        except (pd.errors.ParserError, ValueError) as exc:
+            _fail_file(spec, "", f"not a readable CSV table ({exc})", "make every row have as many cells as the "
+                       "header")
+    frame.columns = [header[k] for k in positions]
     filled = (frame != "").any(axis=1).to_numpy()
     last = int(np.flatnonzero(filled)[-1]) + 1 if filled.any() else 0
     return frame.iloc[:last]  # blank lines at the end are not samples
@@ -327,7 +359,7 @@ def _rows(import_map, records, offsets, release):
         raise InputError(import_map.path, "key 'record'",
                          f"fewer than {MIN_ROWS} samples of logger '{g_name}' lie between {import_map.record_start:g} "
                          f"and {'the end' if import_map.record_end is None else f'{import_map.record_end:g} s'} after "
-                         f"release, where every logger has data ({first - release:.3f} … {last - release:.3f} s "
+                         f"release, where every logger has data ({first - release:.6g} … {last - release:.6g} s "
                          "after release)", "check [record] start and end, and the loggers' offsets")
     return idx, t[idx]
 
