@@ -66,6 +66,12 @@ def files(tmp_path_factory):
     (root / "bad.toml").write_text("x = [\n")
     (root / "latin1.toml").write_bytes("name = 'Düse'\n".encode("latin-1"))
     (root / "a-file").write_text("not a folder\n")
+    from cpas_bayes.core.files import atomic_path
+    from cpas_bayes.core.ownership import claim_folder
+
+    claim_folder(root / "fit_out")      # a fit command's output, as far as --out checks see it
+    with atomic_path(root / "fit_out" / "posterior.nc") as tmp:
+        tmp.write_bytes(b"")
     (root / "dangling").symlink_to(root / "nowhere")
     (root / "loop1").symlink_to(root / "loop2")
     (root / "loop2").symlink_to(root / "loop1")
@@ -118,6 +124,12 @@ def bad_options(f):
         ("reduce --out is a file", ["reduce", DROGUE, "--out", f / "a-file"], "--out"),
         ("reduce --out under a file", ["reduce", DROGUE, "--out", f / "a-file" / "x"], "--out"),
         ("reduce --out a broken link", ["reduce", DROGUE, "--out", f / "dangling"], "is a link to nothing"),
+        ("reduce --out empty", ["reduce", DROGUE, "--out", ""], "an empty path"),
+        ("fit --out blank", ["fit", DROGUE, "--out", "  "], "an empty path"),
+        ("montecarlo --out a fit folder", mc[:-1] + [f / "fit_out"], "holds the output of 'cpas-bayes fit' (posterior.nc)"),
+        ("pool --out a fit folder", ["pool", f / "fit", f / "fit", "--out", f / "fit_out"],
+         "holds the output of 'cpas-bayes fit'"),
+        ("fit --out a memo folder", fit[:-1] + [f / "memo"], "holds the output of 'cpas-bayes pool' (memo.toml)"),
         ("fit --out a loop of links", fit + ["--out", f / "loop1"], "a loop of links"),
         ("fit --priors a loop of links", fit + ["--priors", f / "loop1"], "a loop of links"),
         ("synth --magnitude nan", synth + ["--effect", "added_mass", "--magnitude", "nan"], "--magnitude"),
@@ -342,8 +354,10 @@ def test_the_documented_config_keeps_every_key_in_range(tmp_path):
 def test_runs_beyond_the_memory_budget_are_refused_in_well_under_a_second(files, fresh, capsys, monkeypatch):
     monkeypatch.setattr(resources, "available_memory", lambda: 200_000_000)   # 200 MB: budget 100 MB
     out = fresh()
-    import cpas_bayes.loads.fill_time  # noqa: F401 - the modules the command imports, loaded before timing
-    import cpas_bayes.outputs.montecarlo  # noqa: F401
+    import importlib
+
+    for name in ("cpas_bayes.loads.fill_time", "cpas_bayes.outputs.montecarlo"):   # loaded before timing
+        importlib.import_module(name)
     started = time.perf_counter()
     err = refused(capsys, ["montecarlo", "--memo", files / "memo", "--like", DROGUE, "--runs", "5000000",
                            "--out", out], out, "option --runs 5000000", "100.0 MB", "give at most")

@@ -84,9 +84,42 @@ def _refusal_as_bad_parameter(check, ctx, param, value):
     return value
 
 
+# The file each command always writes at the top of its --out: it says which command's output a folder is.
+# Outputs of two commands share names (fit and montecarlo both write summary.json; figures too), so a
+# command refuses a folder holding another command's output, whose files it would otherwise replace.
+OUTPUT_SIGNATURES = {"fit": "posterior.nc", "montecarlo": "runs.csv", "pool": "memo.toml", "compare": "compare.json",
+                     "diagnose": "diagnosis.json", "reduce": "reduction.json", "campaign": "campaign.json",
+                     "synth": "truth.json", "import": "import.json"}
+
+
+def other_command_output(path, command):
+    """The (command, file) of another command's output held in folder ``path``, or None."""
+    if command not in OUTPUT_SIGNATURES:
+        return None
+    for other, name in OUTPUT_SIGNATURES.items():
+        if other != command and (Path(path) / name).is_file():
+            return other, name
+    return None
+
+
 def check_out(ctx, param, value):
-    """``--out``: the output-folder rule of :mod:`cpas_bayes.core.ownership`, checked while the line is parsed."""
-    return _refusal_as_bad_parameter(check_output, ctx, param, value)
+    """``--out``: the output-folder rule of :mod:`cpas_bayes.core.ownership`, checked while the line is parsed;
+    an empty path (an unset shell variable) and a folder holding another command's output are refused."""
+    if value is None:
+        return None
+    if str(value).strip() == "":
+        raise click.BadParameter("an empty path (an unset shell variable?) would write into the current folder. "
+                                 "Fix: give the output folder's path", ctx=ctx, param=param)
+    value = Path(value)
+    _refusal_as_bad_parameter(check_output, ctx, param, value)
+    found = other_command_output(value, ctx.info_name)
+    if found:
+        other, name = found
+        raise click.BadParameter(f"{value} holds the output of 'cpas-bayes {other}' ({name}); each command's output "
+                                 "needs a folder of its own, since their files share names (summary.json, figures). "
+                                 f"Fix: give {ctx.info_name} a folder of its own (new, empty, or an earlier "
+                                 f"{ctx.info_name} output)", ctx=ctx, param=param)
+    return value
 
 
 def check_toml_file(ctx, param, value):
@@ -96,7 +129,8 @@ def check_toml_file(ctx, param, value):
 
 def out_option(help_text, **kwargs):
     """``--out`` with its check."""
-    return click.option("--out", type=click.Path(path_type=Path), callback=check_out, help=help_text, **kwargs)
+    # a str first, so that the callback sees an empty argument as empty (Path("") reads as ".")
+    return click.option("--out", type=click.Path(), callback=check_out, help=help_text, **kwargs)
 
 
 def seed_option(help_text):
