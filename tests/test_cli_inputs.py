@@ -680,3 +680,12 @@ def test_fit_max_steps_caps_every_ensemble_and_the_fit_says_it_did_not_converge(
     assert summary["diagnostics"]["steps"] == [500, 500]
     printed = capsys.readouterr().out
     assert "NOT converged" in printed and "500 steps per ensemble" in printed
+
+
+def test_a_file_that_is_not_a_memo_gets_no_advice_to_pool_into_its_folder(files, fresh, capsys):
+    """A fit's summary.json given as --memo: re-pooling into the fit's folder (or deleting it) would be harmful
+    advice; the fix names what --memo takes."""
+    out = fresh()
+    err = refused(capsys, ["montecarlo", "--memo", files / "fit" / "summary.json", "--like", DROGUE, "--runs", "10",
+                           "--out", out], out, "summary.json", "pass a memo.toml written by 'cpas-bayes pool'")
+    assert "re-run 'cpas-bayes pool" not in err and "delete" not in err

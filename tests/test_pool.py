@@ -17,7 +17,9 @@ Tolerances are stated where they are used.
 from __future__ import annotations
 
 import math
+import shutil
 import warnings
+from pathlib import Path
 from dataclasses import replace
 
 import numpy as np
@@ -341,6 +343,7 @@ def write_fit_folder(folder, model, rng, name, seed, n_draws=800):
     for n, v in model.derived(theta).items():
         posterior.setdefault(n, v.reshape(2, -1))
     tree = az.from_dict({"posterior": posterior}, check_conventions=False)
+    tree.attrs["test"] = name          # as the fit's own DataTree names its test
     folder.mkdir(parents=True)
     save_datatree(tree, folder / POSTERIOR_NAME)
     summary = build_summary(model, tree, {"converged": True}, SamplerOptions(seed=seed))
@@ -426,6 +429,15 @@ def test_cli_pool_refuses_a_folder_that_is_not_a_fit(fit_folders, tmp_path, caps
     assert status == 2
     assert str(stray) in err and "not a fit folder" in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_a_fit_folder_holding_another_tests_posterior_is_refused(fit_folders, tmp_path):
+    """posterior.nc names its test; a file copied in from another fit would pool that test twice."""
+    mixed = Path(shutil.copytree(fit_folders[0], tmp_path / "mixed"))
+    shutil.copy(Path(fit_folders[1]) / "posterior.nc", mixed / "posterior.nc")
+    other = load_fit(fit_folders[1]).summary["test"]
+    with pytest.raises(InputError, match=f"the posterior is of test '{other}', but summary.json is of"):
+        load_fit(mixed)
 
 
 def test_pool_fits_refuses_the_same_test_twice(fit_folders):

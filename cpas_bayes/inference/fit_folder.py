@@ -206,6 +206,10 @@ def _record(folder, summary, tree, summary_source):
     except InputError as exc:   # the same problem, with what rewrites a fit folder as the fix
         raise InputError(exc.file, exc.where, exc.problem, fix) from None
     where = folder / POSTERIOR_NAME
+    # the posterior names its test: a file copied from another fit would pool one test's draws twice
+    if tree.attrs.get("test", summary["test"]) != summary["test"]:
+        raise InputError(where, "attribute 'test'", f"the posterior is of test {str(tree.attrs['test'])!r:.60}, but "
+                                                    f"{SUMMARY_NAME} is of {summary['test']!r:.60}", fix)
     sizes = set()
     for name, values in draws.items():
         if values.dtype.kind not in "fiu":

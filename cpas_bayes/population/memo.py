@@ -175,7 +175,9 @@ def load_memo(path) -> Memo:
         path = path / MEMO_NAME
     if not path.is_file():
         raise InputError(path, "", "memo file not found", "pass a memo.toml written by 'cpas-bayes pool'")
-    fix = _repool(path.parent)
+    # re-pooling into the file's folder is the fix only where that folder is a memo's: never a fit folder's
+    fix = _repool(path.parent) if path.name == MEMO_NAME else (
+        f"pass a {MEMO_NAME} written by 'cpas-bayes pool' (or its folder); {path.name} is not one")
     try:
         doc = read_toml(path)
     except InputError as exc:   # the same problem, with what rewrites a memo as the fix
