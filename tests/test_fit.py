@@ -154,8 +154,10 @@ def test_composite_cluster_fits_end_to_end_and_loses_to_individual_parachutes(dr
     first, second = (truth[f"{p.id}.s2.start"] for p in test.parachutes)
     assert abs(first - second) > 0.3
     composite = prepare_model(test, reduce_test(test), cluster="composite")
-    options = SamplerOptions(seed=3, n_ensembles=2, check_every=250, max_steps=1000, stop="tau", tau_factor=5.0,
-                             tau_rtol=0.5, map_starts=2, workers=2, progress=False)
+    # the default stop rule (ESS and R-hat ≤ 1.01): a 5 τ stop met R-hat < 1.02 in only 4 of 6 seeds, so a
+    # last-digit change in the data (unit factors) flipped this test
+    options = SamplerOptions(seed=3, n_ensembles=2, check_every=250, max_steps=5000, map_starts=2, workers=2,
+                             progress=False)
     fit = fit_model(composite, options, out=tmp_path / "composite")
     d = fit.summary["diagnostics"]
     assert d["rhat_max"] < 1.02 and all(d["ensembles_converged"]), d

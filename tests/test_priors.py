@@ -1,6 +1,8 @@
 """Priors: densities against scipy, batched evaluation, TOML files and their refusals."""
 
 import math
+import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,8 +12,9 @@ from scipy import stats
 
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.stats.distributions import Beta, LogNormal, Normal, TruncNormal, Uniform, from_table
-from cpas_bayes.stats.priors import (PRIOR_FAMILIES, PRIORS_DIR, PriorSet, load_kind_priors, load_nuisance_priors,
-                                     load_test_priors, prior_from_table)
+from cpas_bayes.stats.priors import (DOMAINS, NUISANCE_PARAMETERS, PARACHUTE_PARAMETERS, PRIOR_FAMILIES, PRIORS_DIR,
+                                     STAGE_PARAMETERS, PriorSet, load_kind_priors, load_nuisance_priors,
+                                     check_override_applies, load_test_priors, prior_from_table, priors_of_test)
 from cpas_bayes.physics.inflation import stage_role
 
 PRIORS = [
@@ -254,3 +257,238 @@ def test_a_campaign_refuses_a_bad_prior_file_before_any_step(tmp_path):
     with pytest.raises(InputError, match=r"key 'nuisance.load_scal': unknown nuisance parameter .*'load_scale'"):
         run_campaign(folder, out, CampaignConfig(priors=str(priors)), echo=lambda *a: None, executor=Executor())
     assert not out.exists()
+
+
+# ---------------------------------------------------------------------------
+# physical domains and sane spreads (a hang, an emcee crash and impossible ranges found by fuzzing)
+
+TEMPLATE = Path(__file__).parent.parent / "priors" / "template.toml"
+DROGUE_TEXT = (PRIORS_DIR / "drogue.toml").read_text(encoding="utf-8")
+
+
+def _drogue_with(tmp_path, table, line):
+    """A copy of the shipped drogue.toml whose [``table``] has ``line`` in place of its prior of the same name
+    (a table the file lacks is added)."""
+    name, section, out, done = line.split(" =")[0], None, [], False
+    for old in DROGUE_TEXT.splitlines():
+        section = old.strip("[]") if old.startswith("[") else section
+        hit = section == table and old.startswith(name + " =")
+        out.append(line if hit else old)
+        done |= hit
+    if not done:
+        assert f"[{table}]" not in DROGUE_TEXT, f"drogue.toml's [{table}] has no {name}"
+        out += [f"[{table}]", line]
+    path = tmp_path / "mine.toml"
+    path.write_text("\n".join(out) + "\n", encoding="utf-8")
+    return path
+
+
+def test_every_shipped_prior_file_and_the_template_pass_every_check():
+    assert set(DOMAINS) == set(STAGE_PARAMETERS + PARACHUTE_PARAMETERS + NUISANCE_PARAMETERS)
+    files = sorted(PRIORS_DIR.glob("*.toml")) + [TEMPLATE]
+    assert len(files) == 6
+    for path in files:
+        kind = tomllib.loads(path.read_text(encoding="utf-8")).get("kind", "drogue")
+        kinds, nuisance = load_test_priors([kind], path)   # every prior of the file built and checked
+        assert kinds[kind].parachute["cd_o"] and nuisance["noise_acc"]
+
+
+BAD_RANGES = [
+    # id, table, line, key named, problem named, fix named
+    ("W1 uniform 1e-300..1e300", "parachute", 'cd_o = { family = "uniform", low = 1e-300, high = 1e300 }',
+     "parachute.cd_o", "too wide to mean anything: its central 68 % interval is ±3.4e+299", "at most ±1000"),
+    ("W1 sigma 1e-300", "first", 'ck = { family = "truncnormal", mu = 1.25, sigma = 1e-300, low = 1.0, high = 2.5 }',
+     "first.ck", "too narrow to fit", "widen it (sigma, sigma_log or the bounds) to at least ±0.00013"),
+    ("W1 sigma_log 1e-300", "reefed", 'n_p = { family = "lognormal", median = 10.0, sigma_log = 1e-300 }',
+     "reefed.n_p", "too narrow to fit", "at least ±0.001 diameters"),
+    ("W1 nuisance sigma 1e-300", "nuisance", 'load_scale = { family = "normal", mu = 1.1, sigma = 1e-300 }',
+     "nuisance.load_scale", "too narrow to fit", "widen it"),
+    ("W1 lognormal sigma_log 30", "first", 'n_p = { family = "lognormal", median = 10.0, sigma_log = 30.0 }',
+     "first.n_p", "too wide to mean anything", "at most ±10000 diameters"),
+    ("W2 tk within 1e-9 s", "first", 'tk = { family = "uniform", low = 0.0, high = 1e-9 }',
+     "first.tk", "too narrow to fit: its central 68 % interval is ±3.4e-10 s", "at least ±0.0001 s"),
+    ("W6 eps beyond 0 and 1", "first", 'eps = { family = "uniform", low = -0.5, high = 3.0 }',
+     "first.eps", "0.71 of this uniform prior lies outside the physical domain (0, 1] of eps",
+     "give low ≥ 0 and high ≤ 1"),
+    ("W6 n_p normal", "first", 'n_p = { family = "normal", mu = 1.0, sigma = 50.0 }',
+     "first.n_p", "0.49 of this normal prior lies outside the physical domain (0, inf) of n_p",
+     "use a truncnormal with low ≥ 0 or a lognormal"),
+    ("W6 ck below 1", "reefed", 'ck = { family = "uniform", low = -5.0, high = 0.5 }',
+     "reefed.ck", "all of this uniform prior lies outside the physical domain [1, inf) of ck", "give low ≥ 1"),
+    ("W6 ck normal", "full_open", 'ck = { family = "normal", mu = 1.25, sigma = 0.25 }',
+     "full_open.ck", "0.16 of this normal prior lies outside", "use a truncnormal with low ≥ 1"),
+    ("W6 tk negative", "first", 'tk = { family = "uniform", low = -1.0, high = 2.0 }',
+     "first.tk", "outside the physical domain (0, inf) of tk", "give low ≥ 0"),
+    ("W6 expopen normal", "first", 'expopen = { family = "normal", mu = 0.5, sigma = 1.0 }',
+     "first.expopen", "outside the physical domain (0, inf) of expopen", "truncnormal with low ≥ 0"),
+    ("W6 cd_o truncated below 0", "parachute", 'cd_o = { family = "truncnormal", mu = 0.6, sigma = 0.3, '
+     'low = -1.0, high = 1.0 }', "parachute.cd_o", "outside the physical domain (0, inf) of cd_o", "low ≥ 0"),
+    ("W6 noise multiplier", "nuisance", 'noise_lc = { family = "uniform", low = -1.0, high = 2.0 }',
+     "nuisance.noise_lc", "outside the physical domain (0, inf) of noise_lc", "give low ≥ 0"),
+]
+
+
+@pytest.mark.parametrize("table, line, key, problem, fix", [c[1:] for c in BAD_RANGES], ids=[c[0] for c in BAD_RANGES])
+def test_impossible_or_absurd_prior_ranges_are_refused_naming_file_key_and_fix(tmp_path, table, line, key, problem,
+                                                                               fix):
+    path = _drogue_with(tmp_path, table, line)
+    with pytest.raises(InputError) as info:
+        load_test_priors(["drogue"], path)
+    message = str(info.value)
+    assert message.startswith(f"{path}, key '{key}': "), message
+    assert problem in message and ". Fix: " in message and fix in message.split(". Fix: ")[1], message
+
+
+@pytest.mark.parametrize("table, line", [
+    ("first", 'n_p = { family = "normal", mu = 12.0, sigma = 1.0 }'),       # 12 sigma above 0: never drawn there
+    ("first", 'eps = { family = "uniform", low = 0.0, high = 1.0 }'),       # the domain's own edges
+    ("reefed", 'tk = { family = "uniform", low = 0.0, high = 2.0 }'),
+    ("full_open", 'ck = { family = "truncnormal", mu = 1.0, sigma = 0.2, low = 1.0, high = 2.0 }'),
+    ("first", 'tk = { family = "uniform", low = 0.5, high = 0.501 }'),      # ±3.4e-4 s: narrow, still fits
+    ("parachute", 'cd_o = { family = "uniform", low = 0.01, high = 2000.0 }'),  # ±680: wide, under 1000
+])
+def test_priors_inside_the_domain_and_the_spread_limits_load(tmp_path, table, line):
+    path = _drogue_with(tmp_path, table, line)
+    kinds, _ = load_test_priors(["drogue"], path)
+    name = line.split(" =")[0]
+    prior = kinds["drogue"].parachute[name] if table == "parachute" else kinds["drogue"].stage[table][name]
+    assert prior == prior_from_table(tomllib.loads(line)[name], path, f"{table}.{name}")
+
+
+def test_a_fit_folder_prior_is_not_held_to_the_file_limits():
+    """Only a prior file's tables are checked against the domains; a fit folder's summary names its priors
+    'priors.<parameter>' and is rebuilt as written."""
+    narrow = {"family": "uniform", "low": 0.0, "high": 1e-9}
+    assert prior_from_table(narrow, "summary.json", "priors.D3.s1.tk") == Uniform(0.0, 1e-9)
+    with pytest.raises(InputError, match="too narrow"):
+        prior_from_table(narrow, "mine.toml", "first.tk")
+
+
+def _run(capsys, *args):
+    """The command line's exit code and standard error."""
+    from cpas_bayes.app.cli import main
+
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as exc:
+        code = exc.code
+    return code, capsys.readouterr().err
+
+
+def test_fit_refuses_the_w2_prior_before_any_work(example_dir, tmp_path, capsys):
+    bundle, out = example_dir("drogue-clean"), tmp_path / "NEW"
+    path = _drogue_with(tmp_path, "first", 'tk = { family = "uniform", low = 0.0, high = 1e-9 }')
+    for args in (["validate", bundle, "--priors", path], ["fit", bundle, "--out", out, "--priors", path]):
+        code, err = _run(capsys, *args)
+        assert code == 2 and f"{path}, key 'first.tk': too narrow" in err, err
+    assert not out.exists()
+
+
+class _CountingModel:
+    """A model whose calls are counted; a runaway search fails the test instead of hanging it."""
+
+    def __init__(self, parameters, log_posterior):
+        self.parameters, self.log_posterior, self.calls = parameters, log_posterior, 0
+
+    def __call__(self, theta):
+        self.calls += 1
+        assert self.calls < 10_000, "find_map keeps drawing starts: a hang"
+        return self.log_posterior(np.atleast_2d(theta))
+
+
+def test_find_map_gives_up_drawing_starts_and_names_the_priors_at_fault():
+    from types import SimpleNamespace
+
+    from cpas_bayes.inference.start import find_map
+
+    params = [SimpleNamespace(name="D3.cds_o", prior=Normal(0.6, 0.1)),
+              SimpleNamespace(name="D3.s1.eps", prior=Uniform(0.1, 0.9))]
+    nowhere = _CountingModel(params, lambda theta: np.full(len(theta), -np.inf))
+    with pytest.raises(ValueError, match=r"no start with a finite log posterior .*not finite there for D3\.s1\.eps"):
+        find_map(nowhere, np.random.default_rng(0), starts=6, guesses=[np.array([0.6, 5.0])])
+    assert nowhere.calls <= 100 * 6 + 1
+    with pytest.raises(ValueError, match="every prior is finite there, the likelihood is not"):
+        find_map(nowhere, np.random.default_rng(0), starts=6, guesses=[np.array([0.6, 0.5])])
+    # finite only within 1e-4 of the guess, where no jittered start lands: the search goes on from the guess
+    def spike(theta):
+        z = (theta - [0.6, 0.5]) / 1e-5
+        return np.where((np.abs(theta - [0.6, 0.5]) < 1e-4).all(axis=1), -0.5 * (z * z).sum(axis=1), -np.inf)
+
+    near = _CountingModel(params, spike)
+    x, log_p = find_map(near, np.random.default_rng(0), starts=6, guesses=[np.array([0.6 + 2e-5, 0.5])])
+    np.testing.assert_allclose(x, [0.6, 0.5], atol=1e-4)
+    assert np.isfinite(log_p)
+
+
+# ---------------------------------------------------------------------------
+# a prior file that changes nothing for the bundle is refused, not silently ignored
+
+def _file(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("text, place, problem", [
+    ((PRIORS_DIR / "main.toml").read_text(encoding="utf-8"), "key 'kind'",
+     "the file is for parachute kind 'main', and the test's parachutes are of kind 'drogue'"),
+    (TEMPLATE.read_text(encoding="utf-8"), "key 'kind'", "for parachute kind 'rescue', and the test's parachutes "
+     "are of kind 'drogue'"),
+    ("", "", "the file sets no prior"),
+    ('kind = "drogue"\ndescription = "nothing yet"\n[first]\n[nuisance]\n', "", "the file sets no prior"),
+], ids=["main file", "template", "empty", "empty tables"])
+def test_a_prior_file_that_changes_nothing_for_the_bundle_is_refused(example_dir, tmp_path, capsys, text, place,
+                                                                     problem):
+    from cpas_bayes.data.bundle import read_bundle
+
+    bundle = example_dir("drogue-clean")
+    path = _file(tmp_path, "mine.toml", text)
+    test = read_bundle(bundle)
+    priors_of_test(test, path)     # loads: the file itself is sound
+    with pytest.raises(InputError) as info:
+        check_override_applies(path, [p.kind for p in test.parachutes])
+    message = str(info.value)
+    assert message.startswith(f"{path}{', ' + place if place else ''}: "), message
+    assert problem in message and 'Fix: give a file with kind = "drogue"' in message
+    assert message.endswith("or leave out --priors")
+    code, err = _run(capsys, "validate", bundle, "--priors", path)
+    assert code == 2 and problem in err
+
+
+def test_a_bundles_own_prior_file_that_changes_nothing_is_refused(example_dir, bundle_files):
+    from cpas_bayes.data.bundle import read_bundle
+
+    bundle = example_dir("drogue-clean")
+    _file(bundle, "main.toml", (PRIORS_DIR / "main.toml").read_text(encoding="utf-8"))
+    bundle_files(bundle).set_key("priors", value="main.toml")
+    with pytest.raises(InputError) as info:
+        priors_of_test(read_bundle(bundle))
+    assert str(info.value).startswith(f"{(bundle / 'main.toml').resolve()}, key 'kind': the file is for parachute "
+                                      "kind 'main'")
+    assert str(info.value).endswith("or remove it from test.toml's key 'priors'")
+
+
+def test_a_prior_file_for_one_kind_of_the_cluster_or_of_nuisances_only_applies(example_dir, bundle_files, tmp_path):
+    from cpas_bayes.data.bundle import read_bundle
+
+    bundle = example_dir("drogue-clean")
+    drogues = read_bundle(bundle)
+    nuisance = _file(tmp_path, "nuisance.toml", '[nuisance]\nnoise_acc = { family = "uniform", low = 0.5, '
+                     'high = 3.0 }\n')
+    assert priors_of_test(drogues, nuisance)[1]["noise_acc"] == Uniform(0.5, 3.0)
+    kindless = _file(tmp_path, "any.toml", '[parachute]\ncd_o = { family = "uniform", low = 0.4, high = 0.8 }\n')
+    assert priors_of_test(drogues, kindless)[0]["drogue"].parachute["cd_o"] == Uniform(0.4, 0.8)
+    bundle_files(bundle).set_key("parachute", 1, "kind", value="main")   # a cluster of two kinds
+    mixed = read_bundle(bundle)
+    main_file = _file(tmp_path, "main.toml", 'kind = "main"\n[first]\nn_p = { family = "normal", mu = 12.0, '
+                      'sigma = 1.0 }\n')
+    kinds, _ = priors_of_test(mixed, main_file)
+    assert kinds["main"].stage["first"]["n_p"] == Normal(12.0, 1.0)
+    assert kinds["drogue"].stage["first"]["n_p"] == load_kind_priors("drogue").stage["first"]["n_p"]
+    pilot = _file(tmp_path, "pilot.toml", main_file.read_text().replace('"main"', '"pilot"'))
+    with pytest.raises(InputError, match="kind 'pilot', and the test's parachutes are of kind 'drogue', 'main'"):
+        check_override_applies(pilot, [p.kind for p in mixed.parachutes])
+    # a campaign's file serves every test: one for Mains applies to a campaign of Drogue and Main tests
+    check_override_applies(main_file, ["drogue", "drogue", "main"], "remove 'priors' from the campaign's configuration")
+    with pytest.raises(InputError, match="or remove 'priors' from the campaign's configuration$"):
+        check_override_applies(main_file, ["drogue"], "remove 'priors' from the campaign's configuration")

@@ -470,7 +470,7 @@ def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=pr
 def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     from cpas_bayes.core.task_clock import TaskClock
     from cpas_bayes.outputs.report import write_report
-    from cpas_bayes.stats.priors import priors_of_test
+    from cpas_bayes.stats.priors import check_override_applies, priors_of_test
 
     started = _time.perf_counter()
     check_output(out)
@@ -478,6 +478,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     tests = validate_all(paths)
     for t in tests:   # a bad or missing prior file: before any step
         priors_of_test(t, config.priors)
+    check_override_applies(config.priors, [p.kind for t in tests for p in t.parachutes],
+                           "remove 'priors' from the campaign's configuration")
     configs = {}
     for path, test in zip(paths, tests):
         test_folder(out, test.name)  # every path from a name checked before anything runs

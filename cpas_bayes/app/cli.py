@@ -31,7 +31,8 @@ from cpas_bayes.inference.coordinates import COORDINATES
 from cpas_bayes.inference.fit import PROPOSALS
 from cpas_bayes.inference.stopping import ESS_TARGET
 from cpas_bayes.app.options import (BATCH, ENSEMBLES, ESS_TARGETS, RUNS, SEED, STEP_CAPS, STOP, WORKERS,
-                                    check_scheduler, out_option, priors_option, seed_option, stop_problem)
+                                    check_fit_folders, check_scheduler, out_option, priors_option, seed_option,
+                                    stop_problem)
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
@@ -80,12 +81,13 @@ def cli():
 def _check_priors(priors, test=None):
     """Load every prior ``test`` needs (its own prior files and the override ``priors``, each checked whole)
     before any work starts; without a test, the override for every package kind."""
-    from cpas_bayes.stats.priors import load_test_priors, priors_of_test
+    from cpas_bayes.stats.priors import check_override_applies, load_test_priors, priors_of_test
 
     if test is None:
         load_test_priors(KINDS, priors)
-    else:
+    else:   # and a --priors file that changes none of its priors (it would be silently ignored) refused
         priors_of_test(test, priors)
+        check_override_applies(priors, [p.kind for p in test.parachutes])
 
 
 @cli.command()
@@ -194,8 +196,7 @@ def _effect_name(ctx, param, value):
 
 @cli.command("synth")
 @click.option("--scenario", type=click.Choice(["drogue", "main", "logger-drop", "logger-attitude", "logger-drogue",
-                                                "logger-main"]),
-              required=True,
+                                                "logger-main"]), required=True,
               help="Scenario library entry: two Drogues (infinite mass) or three Mains (finite mass), with q̄ and "
                    "load cells; or a logger test without q̄ (accelerometer and GNSS): one unreefed canopy "
                    "(logger-drop; logger-attitude: three body axes and quaternions of a swinging vehicle), two "
@@ -436,7 +437,7 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
 
 
 @cli.command("pool")
-@click.argument("fitdirs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.argument("fitdirs", nargs=-1, required=True, type=click.Path(path_type=Path), callback=check_fit_folders)
 @out_option("Memo folder: memo.toml, memo_draws.csv, memo.md and figures.", required=True)
 @seed_option("Seed of the subsampling, hyper-posterior and population-predictive draws.")
 @parallel_options(what="fit-folder loads and kind/stage/parameter selections")

@@ -122,6 +122,19 @@ def check_out(ctx, param, value):
     return value
 
 
+def check_fit_folders(ctx, param, value):
+    """``pool``'s FITDIRS: each a fit folder with a readable summary.json, checked before any worker starts
+    (the posterior files are read by the workers)."""
+    from cpas_bayes.inference.fit_folder import read_summary
+
+    for folder in value or ():
+        try:
+            read_summary(folder)
+        except InputError as exc:
+            raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+    return value
+
+
 def check_toml_file(ctx, param, value):
     """``--priors``: an existing file that reads as TOML within the limits (its tables are checked by the fit)."""
     return _refusal_as_bad_parameter(read_toml, ctx, param, value)

@@ -139,8 +139,9 @@ def read_summary(folder) -> dict:
     folder = Path(folder)
     path = folder / SUMMARY_NAME
     if not path.exists():
-        raise InputError(folder, "", f"no {SUMMARY_NAME}: not a fit folder",
-                         "pass folders written by 'cpas-bayes fit BUNDLE --out FOLDER'")
+        problem = ("not found" if not (folder.exists() or folder.is_symlink()) else
+                   "is a file, not a fit folder" if not folder.is_dir() else f"no {SUMMARY_NAME}: not a fit folder")
+        raise InputError(folder, "", problem, "pass folders written by 'cpas-bayes fit BUNDLE --out FOLDER'")
     fix = _refit(folder)
     summary = read_json(path, fix, what="fit summary")
 

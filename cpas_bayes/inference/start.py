@@ -147,10 +147,19 @@ def find_map(model: TestModel, rng, starts=6, guesses=None):
     candidates = [np.asarray(g, float) for g in guesses] if guesses is not None else [first_guess(model)]
     guess = candidates[0]
     prior_scale = np.array([_prior_scale(p.prior) for p in model.parameters])
-    while len(candidates) < starts:
+    tries = 0
+    while len(candidates) < starts and tries < _MAX_JITTER_TRIES * starts:   # a bounded search, never a hang
+        tries += 1
         trial = guess + 0.1 * prior_scale * rng.standard_normal(guess.size)
         if np.isfinite(model(trial[None])[0]):
             candidates.append(trial)
+    if len(candidates) < starts and not np.isfinite(model(np.array(candidates))).any():
+        with np.errstate(all="ignore"):
+            bad = [p.name for p, x in zip(model.parameters, guess) if not np.isfinite(p.prior.logpdf(x))]
+        raise ValueError(f"no start with a finite log posterior found near the first guess ({tries} jittered "
+                         "draws): " + (f"the prior density is not finite there for {', '.join(bad)}" if bad else
+                                       "every prior is finite there, the likelihood is not")
+                         + "; check the priors (a --priors file) and the bundle's stated values")
     best_x, best_f = None, np.inf
     for x0 in candidates:
         x, f = _polished_minimum(model, x0)
@@ -162,6 +171,7 @@ def find_map(model: TestModel, rng, starts=6, guesses=None):
     return best_x, -best_f
 
 
+_MAX_JITTER_TRIES = 100   # jittered draws per wanted start before find_map gives up looking for more
 _POLISH_GAIN = 0.05   # restart L-BFGS-B from its result while a run gains more than this in log p
 _MAX_POLISH = 6
 _MIN_MEMORY = 10     # L-BFGS-B correction pairs at least (scipy's default)

@@ -355,7 +355,7 @@ def draw_run_inputs(memo: Memo, layout: ClusterLayout, runs: int, rng: np.random
                 bad = ~np.isfinite(x) | ((x <= low) if strict else (x < low))
                 if bad.any():
                     raise InputError(_memo_where(memo, joint), where,
-                                     f"drew {x[bad][0]!r}, outside the physical domain "
+                                     f"drew {float(x[bad][0]):.6g}, outside the physical domain "
                                      f"({'>' if strict else '≥'} {low:g})",
                                      "give the entry bounds (or draws) within the domain")
                 if role == "cds_o":

@@ -35,7 +35,10 @@ checked whole before any prior is used: only the tables above (``kind``,
 ``description``, ``parachute``, the roles, ``nuisance``) and their parameters,
 an unknown name refused with the nearest valid one; ``kind`` one of the bundle
 format's kinds; every number finite, scales > 0, ``low < high``, a lognormal's
-``low ≥ 0``, and bounds that hold a usable share of the distribution.
+``low ≥ 0``, and bounds that hold a usable share of the distribution; each
+prior inside its parameter's physical domain, with a spread neither at rounding
+level nor absurdly wide (:data:`DOMAINS`). For a test, :func:`priors_of_test`
+also refuses a prior file that changes none of the test's priors.
 """
 
 from __future__ import annotations
@@ -62,6 +65,43 @@ PRIOR_FAMILIES = ("uniform", "normal", "truncnormal", "lognormal")   # those Pri
 FILE_TABLES = {"kind": None, "description": None, "finite_mass_ck": bool, "parachute": PARACHUTE_PARAMETERS,
                **{role: STAGE_PARAMETERS for role in ROLES}, "nuisance": NUISANCE_PARAMETERS}
 MIN_MASS = 1e-6   # share of a truncated prior's parent distribution its bounds must hold
+
+
+@dataclass(frozen=True)
+class Domain:
+    """Where a prior-file parameter can physically lie, and the size its values take (its scale)."""
+
+    low: float
+    high: float
+    text: str     # the interval as a message shows it
+    scale: float  # typical magnitude, in the parameter's unit
+    unit: str
+    reason: str
+
+
+_POSITIVE = (0.0, math.inf, "(0, inf)")
+# Each prior-file parameter's physical domain, scale (shipped priors spread 0.1-1x it) and unit, with why.
+DOMAINS = {
+    "cd_o": Domain(*_POSITIVE, 1.0, "", "a drag coefficient is positive"),
+    "n_p": Domain(*_POSITIVE, 10.0, " diameters", "a fill distance is positive"),
+    "expopen": Domain(*_POSITIVE, 1.0, "", "an opening exponent ≤ 0 shrinks or jumps the canopy as it fills"),
+    "ck": Domain(1.0, math.inf, "[1, inf)", 1.0, "", "C_k·CDS_i is the peak: below 1 a dip, not an over-inflation"),
+    "tk": Domain(*_POSITIVE, 1.0, " s", "a ramp-down time is positive"),
+    "eps": Domain(0.0, 1.0, "(0, 1]", 1.0, "", "CDS_i/CDS_o: a reefed stage holds part of the full-open drag area"),
+    "load_scale": Domain(*_POSITIVE, 1.0, "", "true load / load-cell reading: ≤ 0 flips or erases the load"),
+    "noise_acc": Domain(*_POSITIVE, 1.0, "", "it multiplies a 1-sigma, which is positive"),
+    "noise_lc": Domain(*_POSITIVE, 1.0, "", "it multiplies a 1-sigma, which is positive"),
+}
+# A prior may put at most this share outside its parameter's domain: a normal 6 sigma from the edge (n_p of
+# normal(12, 1) puts 1e-33 below 0). No fit draws that many points, so the stage law never sees such a value.
+MAX_OUTSIDE = 1e-9
+# Limits of a prior's spread W (half its central 68 % interval, the width find_map jitters its starts by).
+# Narrow: W ≥ 1e-4 of max(|median|, scale). Fitted reefing ratios are known to ~1e-3, so such a prior already
+# fixes a parameter; narrower ones break the start (measured on the Drogue example): emcee refused the walkers,
+# collinear on the bounds, for tk uniform on [0.5, 0.50001] s (W 3.4e-6) and on [0, 1e-9] s, and sigma = 1e-300
+# left the MAP search no finite start. Wide: W ≤ 1e3 × scale, on the scale and not the median, so that
+# uniform [1e-300, 1e300] (median 5e299) is refused: no canopy parameter is that unknown.
+MIN_SPREAD, MAX_SPREAD = 1e-4, 1e3
 
 
 def prior_from_table(table, file, key):
@@ -115,7 +155,40 @@ def prior_from_table(table, file, key):
         raise InputError(file, f"key '{key}'", f"the bounds [{prior.low:g}, {prior.high:g}] hold {mass:.2g} of the "
                          f"{family} distribution (less than {MIN_MASS:g}): its centre lies far outside them",
                          "move mu (or median) inside the bounds, or widen them")
+    table_name, _, parameter = key.rpartition(".")
+    if table_name in FILE_TABLES and parameter in DOMAINS:   # a prior file's, not a fit folder's "priors.<name>"
+        _check_physical(prior, family, file, key, DOMAINS[parameter])
     return prior
+
+
+def _check_physical(prior, family, file, key, domain):
+    """Refuse a prior reaching outside its parameter's physical domain, or of an absurd spread."""
+    with np.errstate(all="ignore"):   # extreme numbers: a NaN spread is refused below
+        below, upto = (float(c) for c in prior.cdf(np.array([domain.low, domain.high])))
+        q16, q50, q84 = (float(q) for q in prior.ppf(np.array([0.16, 0.5, 0.84])))
+    outside = below + (1.0 - upto)
+    if not outside <= MAX_OUTSIDE:
+        leaks = ([f"low ≥ {domain.low:g}"] if below > MAX_OUTSIDE / 2 else []) + \
+                ([f"high ≤ {domain.high:g}"] if 1.0 - upto > MAX_OUTSIDE / 2 else [])
+        share = "all" if outside > 1 - 1e-9 else f"{outside:.2g}"
+        fix = (f"a normal has no bounds: use a truncnormal with {' and '.join(leaks)}"
+               + (" or a lognormal" if domain.low == 0 and domain.high == math.inf else "")
+               if family == "normal" else f"keep it inside {domain.text}: give {' and '.join(leaks)}")
+        raise InputError(file, f"key '{key}'", f"{share} of this {family} prior lies outside the physical domain "
+                         f"{domain.text} of {key.rpartition('.')[2]} ({domain.reason})", fix)
+    spread, size = (q84 - q16) / 2, max(abs(q50), domain.scale)
+    if not spread >= MIN_SPREAD * size:
+        raise InputError(file, f"key '{key}'", f"too narrow to fit: its central 68 % interval is ±{spread:.2g}"
+                         f"{domain.unit}, below {MIN_SPREAD:g} × {size:g}{domain.unit} (the larger of its median "
+                         f"and the parameter's scale {domain.scale:g}{domain.unit})",
+                         f"widen it (sigma, sigma_log or the bounds) to at least ±{MIN_SPREAD * size:.2g}"
+                         f"{domain.unit}")
+    if not spread <= MAX_SPREAD * domain.scale:
+        raise InputError(file, f"key '{key}'", f"too wide to mean anything: its central 68 % interval is "
+                         f"±{spread:.2g}{domain.unit}, over {MAX_SPREAD:g} × the parameter's scale "
+                         f"{domain.scale:g}{domain.unit}",
+                         f"narrow it (sigma, sigma_log or the bounds) to at most ±{MAX_SPREAD * domain.scale:g}"
+                         f"{domain.unit}")
 
 
 def _load_toml(path):
@@ -258,9 +331,43 @@ def load_test_priors(kinds, override=None, files=(), named_in=None):
 
 def priors_of_test(test, override=None):
     """:func:`load_test_priors` for a flight test (a ``FlightTest``): its parachutes' kinds and its own
-    prior files, a refusal naming the test.toml key of a kind without priors."""
+    prior files, a refusal naming the test.toml key of a kind without priors, and one naming a prior file
+    of its own that changes no prior of this test (``override``, which may serve many tests, is checked
+    against all their kinds at once: :func:`check_override_applies`)."""
     named_in = test.kind_keys()
-    return load_test_priors(list(named_in), override, test.priors_files, named_in)
+    kinds = list(named_in)
+    loaded = load_test_priors(kinds, override, test.priors_files, named_in)   # each file checked whole first
+    for file in test.priors_files:
+        _check_applies(file, kinds, "remove it from test.toml's key 'priors'")
+    return loaded
+
+
+def check_override_applies(override, kinds, or_else="leave out --priors"):
+    """Refuse an override file (``--priors``, a campaign's ``priors``) that changes no prior of the tests,
+    whose parachutes are of ``kinds`` (every test it serves)."""
+    for file in _override_files(override):
+        _check_applies(file, sorted(set(kinds)), or_else)
+
+
+def _check_applies(file, kinds, or_else):
+    """Refuse a prior file that changes nothing for a test of parachute ``kinds``: a silently ignored file
+    would leave the user believing a fit used priors it never saw. Nuisance priors apply to every test; the
+    other tables to the file's ``kind`` (every kind without one)."""
+    doc = _load_toml(file)
+    if doc.get("nuisance"):
+        return
+    kind = doc.get("kind")
+    tables = [t for t in ("parachute",) + ROLES + ("finite_mass_ck",) if doc.get(t) not in (None, {})]
+    if tables and (kind is None or kind in kinds):
+        return
+    fix = (f'give a file with kind = "{kinds[0]}" (or no kind) and the tables it replaces (layout: '
+           f'priors/template.toml), or {or_else}')
+    if tables:
+        raise InputError(file, "key 'kind'", f"the file is for parachute kind {shown(kind)}, and the test's "
+                         f"parachutes are of kind {', '.join(map(shown, kinds))}: it changes no prior of this test",
+                         fix)
+    raise InputError(file, "", "the file sets no prior: it has no [parachute], [first], [reefed], [full_open] or "
+                     "[nuisance] table with a prior in it", fix)
 
 
 def load_nuisance_priors(override=None):
