@@ -244,7 +244,7 @@ def read_logger(spec) -> LoggerRecord:
     if (steps <= 0).any():
         i = int(np.flatnonzero(steps <= 0)[0]) + 1
         _fail_file(spec, f"{_row(spec, i)}, column '{spec.time_column}'",
-                   f"time not strictly increasing ({t[i - 1]:.6f} s then {t[i]:.6f} s)",
+                   f"time not strictly increasing ({t[i - 1]:.10g} s then {t[i]:.10g} s)",
                    "sort the rows by time and remove repeated samples")
     channels = {}
     for ch in spec.channels.values():
