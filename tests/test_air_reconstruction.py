@@ -121,3 +121,61 @@ def test_readings_before_a_release_are_not_read_as_drag():
     cut = air.best_estimate_trajectory(test)
     whole = air.best_estimate_trajectory(longer)
     assert np.all(np.abs(whole.phi - cut.phi) < 2.0 * cut.sigma + 1e-9)
+
+
+# ---------------------------------------------------------------------------
+# careless logger bundles (a fuzzing pass): refused by name, or warned about, never a crash or silent nonsense
+
+
+def _with(test, **columns):
+    d = test.data.copy()
+    for name, values in columns.items():
+        d[name] = values
+    return replace(test, data=d)
+
+
+def test_a_density_column_that_cannot_be_read_against_altitude_or_is_in_another_unit_is_refused():
+    from cpas_bayes.core.errors import BundleError
+
+    test, _ = synthesize_logger("logger-drop", 1)
+    has_h = np.isfinite(test.data["altitude"].to_numpy(float))
+    off_rows = np.where(has_h, np.nan, 1.0)                   # density only where the altitude is not
+    with pytest.raises(BundleError, match="column 'density': 0 row.s. hold both a density and an altitude"):
+        air.logger_channels(_with(test, density=off_rows))
+    slug = np.where(has_h, 0.00197, np.nan)                   # slug/ft³ read as kg/m³ at ~1.9 km
+    with pytest.raises(BundleError, match=r"the density is 0.00\d+× the standard atmosphere's"):
+        air.logger_channels(_with(test, density=slug))
+    moist = np.where(has_h, 0.9, np.nan)                      # a plausible measured density is used
+    assert np.allclose(air.logger_channels(_with(test, density=moist)).density_table, 0.9)
+
+
+def test_a_release_at_the_end_of_the_record_is_refused_not_read_as_the_whole_record():
+    from cpas_bayes.core.errors import BundleError
+
+    test, _ = synthesize_logger("logger-drop", 1)
+    t = test.data["time"].to_numpy(float)
+    g = test.data["G"].to_numpy(float)
+    hanging = np.where(np.isfinite(g), np.where(t < t[-1] - 0.15, 1.0, 0.3), np.nan)   # lifted, then a drop
+    with pytest.raises(BundleError, match="release is found at .* leaving [0-9] readings after it"):
+        air.logger_channels(_with(test, G=hanging))
+
+
+def test_a_trajectory_that_misses_its_receiver_is_warned_about():
+    """v_up of a receiver that counts down: the reduction warns (its whitened misfit ≫ 1); the clean test not."""
+    from cpas_bayes.data.reduction import reduce_test
+
+    test, _ = synthesize_logger("logger-drop", 1)
+    assert reduce_test(test).warnings == []
+    flipped = reduce_test(_with(test, v_up=-test.data["v_up"]))
+    assert len(flipped.warnings) == 1 and "sign of v_up" in flipped.warnings[0]
+    assert flipped.to_json()["warnings"] == flipped.warnings
+    assert flipped.air_estimate.rms_whitened > air.MISFIT_RMS
+
+
+def test_a_record_reaching_above_the_standard_atmosphere_is_reduced_not_crashed():
+    """The density table spans where the flight could go, clipped to the 1976 layers (a long record's span
+    reached 95 km and the atmosphere raised)."""
+    test, _ = synthesize_logger("logger-drop", 1)
+    high = air.logger_channels(_with(test, altitude=test.data["altitude"] + 80_000.0))
+    assert high.density_altitude.max() <= air.TOP_GEOPOTENTIAL_ALTITUDE
+    assert np.all(np.isfinite(high.density_table))

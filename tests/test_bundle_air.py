@@ -229,6 +229,13 @@ def _velocity_without_sigma_cell(folder):
     return ROWS.index(next(r for r in ROWS if r["time"] == GNSS_TIMES[2])) + 2
 
 
+def _zero_velocity_sigma_cell(folder):
+    header = HEADER + ["v_up_sigma"]
+    rows = [{**r, "v_up_sigma": 0.0 if r["time"] == GNSS_TIMES[2] else 0.5} if "v_up" in r else r for r in ROWS]
+    write_logger(folder, edited(sigma={"G": 0.03, "v_north": 0.1, "v_east": 0.1, "F_D1": 10.0}), rows, header)
+    return ROWS.index(next(r for r in ROWS if r["time"] == GNSS_TIMES[2])) + 2
+
+
 def _few_g(folder):
     rows = [r for r in ROWS if "G" not in r or r["time"] < 0.45]   # 9 accelerometer rows
     write_logger(folder, edited(parachute=[{**DOC["parachute"][0], "stage": [
@@ -293,6 +300,10 @@ LOGGER_REFUSALS = [
      "or give v_north, v_east, v_up and altitude with their sigmas"),
     ("implausible velocity", _fast_v, "data.csv", "row {row}, column 'v_up'",
      "v_up = -5000 m/s is outside -1000 … 1000 m/s", "SI bundles in"),
+    ("zero velocity sigma cell", _zero_velocity_sigma_cell, "data.csv", "row {row}, column 'v_up_sigma'",
+     "a 1-sigma of 0 for a sample of 'v_up' (no sensor is exact)", "give the sensor's 1-sigma"),
+    ("zero sigma in [sigma]", _logger(sigma={"G": 0.0, "v_north": 0.1, "v_east": 0.1, "v_up": 0.1, "F_D1": 10.0}),
+     "test.toml", "key 'sigma.G'", "a 1-sigma of 0 for a sample of 'G'", "give the sensor's 1-sigma"),
     ("nan written in a velocity cell", _nan_text, "data.csv", "row {row}, column 'v_north'",
      "the cell is 'nan', not a finite number", "is empty where the channel has no sample"),
 ]

@@ -163,10 +163,8 @@ def reduce_command(bundle, out, scale, windows):
         per_window = ", ".join(f"{v:.4f} ± {s:.4f} [{a:.2f}–{b:.2f} s]"
                                for v, s, (a, b) in zip(sc.values, sc.sigma, sc.windows))
         click.echo(f"  friction scale factor by window ({sc.source}): {per_window}")
-        if sc.mode == "constant":
-            click.echo(f"  applied constant scale factor: {sc.factor:.4f} ± {sc.factor_sigma:.4f}")
-        else:
-            click.echo("  applied linear scale factor through the window midpoints")
+        click.echo(f"  applied constant scale factor: {sc.factor:.4f} ± {sc.factor_sigma:.4f}" if sc.mode == "constant"
+                   else "  applied linear scale factor through the window midpoints")
     for pk in red.peaks:
         acc = pk.accelerometer
         line = (f"  {pk.stage.label}: peak load accelerometer {u.from_si(acc.load, 'force'):,.0f} ± "
@@ -179,6 +177,8 @@ def reduce_command(bundle, out, scale, windows):
     for share in red.load_share:
         click.echo(f"  {share.stage.label}: mean load share "
                    + ", ".join(f"{pid} {100 * v:.0f}%" for pid, v in share.mean.items()))
+    for warning in red.warnings:
+        click.secho(f"warning: {warning}", fg="yellow", err=True)
     for path in paths.values():
         click.echo(f"wrote {path}")
 

@@ -60,7 +60,7 @@ from cpas_bayes.data.air_data import LATENCY_PRIOR, VELOCITY_COLUMNS, WIND_SIGMA
 from cpas_bayes.data.bundle import FlightTest, with_data
 from cpas_bayes.data.logger_events import EventNotFound, detect_release
 from cpas_bayes.physics import flight_path as fp
-from cpas_bayes.physics.atmosphere import standard_density
+from cpas_bayes.physics.atmosphere import TOP_GEOPOTENTIAL_ALTITUDE, standard_density
 from cpas_bayes.core.units import STANDARD_GRAVITY
 
 AIR_PARAMETERS = ("airspeed_0", "flight_path_angle_0", "heading_0", "altitude_0", "wind_north", "wind_east",
@@ -124,8 +124,10 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     except EventNotFound:   # a fast drop's free fall may sense > 0.5 g of drag: time 0 is release (docs/import.md)
         release = 0.0 if t_a[0] < 0.0 < t_a[-1] else -np.inf
     after = t_a >= release
-    if after.sum() < 10:
-        after = np.ones(t_a.size, bool)
+    if after.sum() < 10:   # a release found at the record's end: nothing after it is drag against the airspeed
+        raise BundleError(test.label, "column 'G'", f"the release is found at {release:.3f} s, leaving "
+                          f"{int(after.sum())} readings after it",
+                          "give a record that continues after release (at least 10 readings of G)")
     t_a, g, sigma_a = t_a[after], g[after], sigma_a[after]
     t_v, _ = channel_samples(d, "v_north")
     rows = np.isfinite(d["v_north"].to_numpy(float))
@@ -152,11 +154,28 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         w_alt, w_n, w_e, w_sigma = np.zeros(1), np.zeros(1), np.zeros(1), None
     speed = float(np.nanmax(np.linalg.norm(vel, axis=1)))
     span = speed * (t_a[-1] - t_a[0]) + 2000.0
-    alt = np.arange(float(np.min(h)) - span, float(np.max(h)) + span, 1.0)
-    if "density" in d and np.isfinite(d["density"].to_numpy(float)).sum() >= 2:
+    # the table spans where the trajectory could go, within the standard atmosphere's layers (a long record's
+    # span reached 95 km, above them)
+    alt = np.arange(max(float(np.min(h)) - span, ATMOSPHERE_FLOOR),
+                    min(float(np.max(h)) + span, TOP_GEOPOTENTIAL_ALTITUDE), 1.0)
+    if alt.size < 2:
+        raise BundleError(test.label, "column 'altitude'", f"every altitude is above {TOP_GEOPOTENTIAL_ALTITUDE:g} m, "
+                          "where the standard atmosphere ends", "check the altitude's unit (m or ft)")
+    if "density" in d and np.isfinite(d["density"].to_numpy(float)).any():
         # A measured density column: ρ against the logged altitude at the same rows.
         both = np.isfinite(d["density"].to_numpy(float)) & np.isfinite(d["altitude"].to_numpy(float))
+        if both.sum() < 2:
+            raise BundleError(test.label, "column 'density'", f"{int(both.sum())} row(s) hold both a density and "
+                              "an altitude; the density is read against the altitude of its rows",
+                              "give the density on rows that have the altitude (at least 2), or leave the column "
+                              "empty to use the standard atmosphere")
         h_d, rho_d = d["altitude"].to_numpy(float)[both], d["density"].to_numpy(float)[both]
+        # weather moves density by ±20 % at most from the standard atmosphere; a unit slip by far more
+        ratio = float(np.median(rho_d / standard_density(np.clip(h_d, ATMOSPHERE_FLOOR, TOP_GEOPOTENTIAL_ALTITUDE))))
+        if not 1 / 3 <= ratio <= 3:
+            raise BundleError(test.label, "column 'density'", f"the density is {ratio:.3g}× the standard "
+                              "atmosphere's at the logged altitude", "check its unit (the bundle's: kg/m³ in an "
+                              "SI bundle, slug/ft³ in a US one) and the altitude's")
         order = np.argsort(h_d)
         table = np.exp(np.interp(alt, h_d[order], np.log(rho_d[order])))
     elif spec is not None and spec.atmosphere is not None:
@@ -366,6 +385,14 @@ def whitened_misfit(ch: LoggerChannels, tr: AirTrack, errors: ReceiverErrors):
     return solve_triangular(errors.chol, stacked.T, lower=True, check_finite=False).T
 
 
+ATMOSPHERE_FLOOR = -5000.0   # m: the standard troposphere's extrapolation holds to about −5 km
+
+# Whitened receiver residuals' RMS above which the reconstruction is said not to explain the receiver: ≈ 1 when
+# the model holds (0.97 on a synthetic drop); 2.4-2.6 with a slightly misstated wind or latency; 5-96 for a
+# unit or sign slip (G in m/s², v_up down, density in slug/ft³, a wind stated exact but off).
+MISFIT_RMS = 3.0
+
+
 @dataclass(frozen=True)
 class AirDataEstimate:
     """The best-estimate trajectory: air parameters at the maximum and their covariance."""
@@ -381,6 +408,14 @@ class AirDataEstimate:
     @property
     def sigma(self):
         return np.sqrt(np.diag(self.covariance))
+
+    def misfit_warning(self):
+        """A sentence when the trajectory does not explain the receiver (whitened RMS > :data:`MISFIT_RMS`)."""
+        if not self.rms_whitened > MISFIT_RMS:
+            return None
+        return (f"the best-estimate trajectory misses the receiver's samples by {self.rms_whitened:.1f}× their "
+                "stated 1-sigma, so q̄ and the drag areas may be wrong: check the units of G (g, not m/s²), the "
+                "sign of v_up (positive up), the density and altitude columns, and the [wind] table's sigma")
 
 
 def best_estimate_trajectory(test: FlightTest, draws=200, seed=0) -> AirDataEstimate:

@@ -19,6 +19,7 @@ the one that imports it.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -188,6 +189,14 @@ def _sigma(raw, column, values, sigma_table, spec, units, path, required=True):
     else:
         raise BundleError(path, f"column '{name}'", f"no 1-sigma for '{column}' (required in a logger bundle)",
                           f"add a '{name}' column, or '{column} = <sigma>' under [sigma] in test.toml")
+    # a required channel's samples are weighed by 1/sigma: zero claims a perfect sensor and breaks the fit
+    zero = np.flatnonzero(present & (sigma == 0)) if required else np.array([], int)
+    if zero.size:
+        in_csv = name in raw.columns
+        where = f"row {int(zero[0]) + 2}, column '{name}'" if in_csv else f"key 'sigma.{column}'"
+        raise BundleError(path if in_csv else Path(path).parent / "test.toml", where,
+                          f"a 1-sigma of 0 for a sample of '{column}' (no sensor is exact)",
+                          "give the sensor's 1-sigma (its noise, e.g. from the data sheet or a still period)")
     return np.where(present, sigma, np.nan)
 
 

@@ -201,6 +201,12 @@ class Reduction:
                 out[col] = u.from_si(out[col].to_numpy(), "time")
         return out
 
+    @property
+    def warnings(self):
+        """What to know before trusting the numbers: a logger bundle's trajectory that misses its receiver."""
+        said = self.air_estimate.misfit_warning() if self.air_estimate is not None else None
+        return [said] if said else []
+
     def to_json(self):
         u = self.test.units
         return {"test": self.test.name, "bundle": str(self.test.source) if self.test.source else None,
@@ -209,7 +215,7 @@ class Reduction:
                 "scale_factor": self.scale.to_json() if self.scale else None,
                 "peak_smoothing_s": self.peak_smoothing,
                 "peaks": [p.to_json(u) for p in self.peaks],
-                "load_share": [s.to_json() for s in self.load_share]}
+                "load_share": [s.to_json() for s in self.load_share], "warnings": self.warnings}
 
 
 def _check_mode(test, scale):
