@@ -36,6 +36,9 @@ RATE_CHANNELS = ("G", "v", "altitude")
 # the wind projection's best guess (cpas_bayes.data.attitude, kept for comparison) share it.
 LATENCY_PRIOR = (0.3, 0.5)
 WIND_SIGMA_WITHOUT_PROFILE = 10.0   # m/s per component: the wind prior's 1-sigma when test.toml has no [wind]
+# m/s per component: a [wind] profile's 1-sigma when it states none. A sounding's wind is off by 1-3 m/s by the
+# time and place of a drop; 0, the default before, claimed it exact and bent the trajectory to a wrong wind.
+WIND_SIGMA_DEFAULT = 2.0
 
 
 @dataclass(frozen=True)

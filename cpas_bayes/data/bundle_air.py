@@ -26,8 +26,8 @@ import numpy as np
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.inputs import shown
 from cpas_bayes.data import limits
-from cpas_bayes.data.air_data import RATE_CHANNELS, VELOCITY_COLUMNS, AirDataSpec, DensityProfile, WindProfile, \
-    sample_interval
+from cpas_bayes.data.air_data import RATE_CHANNELS, VELOCITY_COLUMNS, WIND_SIGMA_DEFAULT, AirDataSpec, DensityProfile, \
+    WindProfile, sample_interval
 from cpas_bayes.data.attitude import NORM_TOLERANCE, swing_load_factor
 from cpas_bayes.data.bundle_csv import blank_column
 from cpas_bayes.data.limits import check_column, check_value
@@ -122,8 +122,9 @@ def _wind(reader, table):
     h = _altitudes(reader, table, "wind")
     north = _levels(reader, table, "north", "wind", spec, "wind toward north", len(h))
     east = _levels(reader, table, "east", "wind", spec, "wind toward east", len(h))
-    sigma = reader.number(table, "sigma", "wind.", minimum=0, optional=True, plausible=spec.sigma()) or 0.0
-    return WindProfile(u.si(h, "length"), u.si(north, "speed"), u.si(east, "speed"), float(u.si(sigma, "speed")))
+    sigma = reader.number(table, "sigma", "wind.", minimum=0, optional=True, plausible=spec.sigma())
+    sigma = WIND_SIGMA_DEFAULT if sigma is None else float(u.si(sigma, "speed"))
+    return WindProfile(u.si(h, "length"), u.si(north, "speed"), u.si(east, "speed"), sigma)
 
 
 def _atmosphere(reader, table):
