@@ -8,7 +8,7 @@ outputs, so a US bundle gives US results.
 The two systems' factors follow from three exact definitions — the
 international foot (0.3048 m) and pound (0.45359237 kg) of 1959, and standard
 gravity (9.80665 m/s², so 1 lbf = 0.45359237·9.80665 N) — so they are written
-from those, and a test checks that pint derives the same to 1e-15. pint
+from those, and a test checks that pint derives the same to 1e-14. pint
 parses the free-form units of a logger's columns (:func:`column_factor`, the
 import maps), where it does a job hand-written code would not; it and its
 registry (0.4 s to import and parse) load only then.

@@ -36,13 +36,11 @@ from cpas_bayes.data.air_data import AirDataSpec
 from cpas_bayes.data.bundle_air import AIR_TABLES, LOGGER_QUANTITY, air_summary, check_measured_columns, \
     logger_bundle, logger_columns, parachute_channels, parse_air_tables, refuse_air_tables, \
     sigma_channels
-from cpas_bayes.data.bundle_csv import csv_header, numeric_column, read_csv, sigma_column
+from cpas_bayes.data.bundle_csv import CSV_NAME, TOML_NAME, csv_header, numeric_column, read_csv, sigma_column
 from cpas_bayes.data.limits import MAX_COLUMN_NAME, check_column, check_record, check_value
 
 KINDS = ("drogue", "main", "pilot", "fbcp")   # kinds whose priors the package ships; any other needs a priors file
 INFLATIONS = ("infinite", "finite")
-TOML_NAME = "test.toml"
-CSV_NAME = "data.csv"
 
 # Column -> physical quantity, for unit conversion. Angles stay in degrees.
 COLUMN_QUANTITY = {"time": "time", "qbar": "pressure", "qbar_sigma": "pressure",

@@ -29,7 +29,7 @@ from cpas_bayes.data import limits
 from cpas_bayes.data.air_data import RATE_CHANNELS, VELOCITY_COLUMNS, WIND_SIGMA_DEFAULT, AirDataSpec, DensityProfile, \
     WindProfile, sample_interval
 from cpas_bayes.data.attitude import NORM_TOLERANCE, swing_load_factor
-from cpas_bayes.data.bundle_csv import blank_column
+from cpas_bayes.data.bundle_csv import TOML_NAME, blank_column
 from cpas_bayes.data.limits import check_column, check_value
 
 AIR_TABLES = ("wind", "atmosphere", "rate")
@@ -195,7 +195,7 @@ def _sigma(raw, column, values, sigma_table, spec, units, path, required=True):
     if zero.size:
         in_csv = name in raw.columns
         where = f"row {int(zero[0]) + 2}, column '{name}'" if in_csv else f"key 'sigma.{column}'"
-        raise BundleError(path if in_csv else Path(path).parent / "test.toml", where,
+        raise BundleError(path if in_csv else Path(path).parent / TOML_NAME, where,
                           f"a 1-sigma of 0 for a sample of '{column}' (no sensor is exact)",
                           "give the sensor's 1-sigma (its noise, e.g. from the data sheet or a still period)")
     return np.where(present, sigma, np.nan)

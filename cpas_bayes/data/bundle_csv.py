@@ -18,6 +18,7 @@ from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.inputs import not_a_file, shown, text_problem
 from cpas_bayes.data.limits import MAX_COLUMN_NAME, MAX_CSV_BYTES, MAX_CSV_COLUMNS, MAX_CSV_ROWS
 
+TOML_NAME, CSV_NAME = "test.toml", "data.csv"   # a bundle folder's two files
 _HEADER_FIX = "start data.csv with a comma-separated header such as time,G,G_sigma,..."
 _TRAILING_FIX = "remove the comma at the end of every line (an export option of the spreadsheet or logger)"
 
@@ -81,7 +82,7 @@ def _check_row_shapes(path, raw, n_columns):
                       "make every row have as many comma-separated cells as the header")
 
 
-def read_csv(path, toml_name="test.toml"):
+def read_csv(path, toml_name=TOML_NAME):
     """data.csv as a frame of cell strings (header names stripped); refuses with file, row and fix."""
     if not path.is_file():
         raise _missing(path, toml_name)

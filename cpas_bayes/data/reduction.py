@@ -78,7 +78,7 @@ import numpy as np
 import pandas as pd
 
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.data.bundle import FlightTest
+from cpas_bayes.data.bundle import TOML_NAME, FlightTest
 from cpas_bayes.data.friction import SCALE_MODES, ScaleFactor, calibrate_scale_factor
 from cpas_bayes.data.peaks import (DEFAULT_PEAK_SMOOTHING, peak_filter_width, peaks_and_load_share,
                                    stage_intervals)
@@ -349,7 +349,7 @@ def check_load_cells(test):
     the accelerometer's total, so a cluster measured in part cannot be reduced (refused naming the key)."""
     missing = [p for p in test.parachutes if not p.load_column]
     if missing and len(missing) != len(test.parachutes):
-        file = test.source / "test.toml" if test.source else test.label
+        file = test.source / TOML_NAME if test.source else test.label
         raise InputError(file, f"key 'parachute '{missing[0].id}'.load_cell'",
                          f"parachute(s) {', '.join(p.id for p in missing)} have no load cell, so the load cells "
                          "cannot be calibrated against the accelerometer total",
