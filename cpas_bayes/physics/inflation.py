@@ -348,7 +348,29 @@ def parachute_stage_rate(t, start, cds_stage, expopen, ck, t_k, n_stages, decay,
     A difference, not the law's derivative: that jumps at the law's kinks (t_fp, a stage's start), so the
     added mass' force would jump whenever a kink crossed a bin and the likelihood with it (by 33 in log p
     for a 3e-5 change of a Main's reefing ratio, which stopped the MAP search where it began)."""
+    # Where the law is one constant over ±step the difference is exactly 0: before the first stage, and in
+    # each stage's settled part (from t_fp + t_k after its start, or its start when it does not grow, to the
+    # next start): most bins of a record. The stage _law_at picks for a time is the last one started.
+    settle = np.empty(n_stages)
+    until = np.empty(n_stages)
+    first = np.inf
+    for k in range(n_stages):
+        settle[k] = start[k] + (t_fp[k] + max(t_k[k], 0.0) if t_f[k] > 0.0 else 0.0)
+        until[k] = np.inf
+        for j in range(k + 1, n_stages):
+            until[k] = min(until[k], start[j])
+        first = min(first, start[k])
     for i in range(t.shape[0]):
+        lo, hi = t[i] - step, t[i] + step
+        constant = hi < first
+        if not constant:
+            for k in range(n_stages - 1, -1, -1):
+                if lo >= start[k]:
+                    constant = lo >= settle[k] and hi < until[k]
+                    break
+        if constant:
+            out[i] = 0.0
+            continue
         ahead = _law_at(t[i] + step, start, cds_stage, expopen, ck, t_k, n_stages, decay, below_previous, t_f,
                         t_fp, held)
         behind = _law_at(t[i] - step, start, cds_stage, expopen, ck, t_k, n_stages, decay, below_previous, t_f,
