@@ -136,3 +136,26 @@ def test_a_campaign_runs_reruns_in_seconds_and_grows_by_one_fit(tmp_path):
     new = next(n for n in json.loads((out / "campaign.json").read_text())["tests"] if n not in names)
     assert steps[f"{new} fit"] == "ran" and steps["pool"] == "ran"
     assert all(steps[f"{n} fit"] == "cached" and steps[f"{n} diagnosis"] == "cached" for n in names)
+
+
+def test_a_bundle_is_keyed_by_what_is_read_of_it(tmp_path):
+    """The campaign's key of a bundle hashes test.toml, data.csv and the test's own prior files: a fit or a
+    note written inside the bundle folder keeps the key (before, it changed it, and re-ran the test's steps),
+    a changed byte of the data or of a prior file changes it."""
+    from cpas_bayes.app.campaign import bundle_digest
+
+    folder = tmp_path / "T1"
+    write_synthetic("drogue", "none", 31, folder)
+    prior = tmp_path / "mine.toml"
+    prior.write_text("# a prior file\n")
+    key = bundle_digest(folder, (prior,))
+    (folder / "notes.txt").write_text("dropped on a windy day\n")
+    (folder / "fit").mkdir()
+    (folder / "fit" / "posterior.nc").write_bytes(b"\0" * 1000)
+    assert bundle_digest(folder, (prior,)) == key
+    prior.write_text("# a prior file, edited\n")
+    assert bundle_digest(folder, (prior,)) != key
+    prior.write_text("# a prior file\n")
+    data = (folder / "data.csv").read_text()
+    (folder / "data.csv").write_text(data.replace(",", ", ", 1))
+    assert bundle_digest(folder, (prior,)) != key

@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from cpas_bayes import __version__
-from cpas_bayes.data.bundle import TOML_NAME, read_bundle
+from cpas_bayes.data.bundle import CSV_NAME, TOML_NAME, read_bundle
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.inputs import read_json
@@ -84,6 +84,15 @@ def folder_digest(folder) -> str:
     folder = Path(folder)
     files = sorted(p for p in folder.rglob("*") if p.is_file() and not p.name.startswith("."))
     return _digest(*[part for p in files for part in (str(p.relative_to(folder)), p.read_bytes())])
+
+
+def bundle_digest(folder, priors_files=()) -> str:
+    """Hash of what reading a bundle reads: its test.toml and data.csv, and the test's own prior files (which
+    may sit outside its folder). Other files in the folder (notes, a fit written inside it) leave it as it is:
+    hashing the whole folder re-ran a test's steps after each fit written there and read its 30 MB."""
+    folder = Path(folder)
+    return _digest(*[(folder / name).read_bytes() for name in (TOML_NAME, CSV_NAME)],
+                   *[Path(f).read_bytes() for f in priors_files])
 
 
 def priors_digest(config: CampaignConfig) -> str:
@@ -495,8 +504,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     fit_keys, diag_keys = {}, {}
     jobs = []
     for path, test in zip(paths, tests):
-        # the test's own prior files may sit beside the bundles, outside its folder
-        bundle_key = _digest(folder_digest(path), *[f.read_bytes() for f in test.priors_files], __version__)
+        bundle_key = _digest(bundle_digest(path, test.priors_files), __version__)
         fit_opts = {k: options[k] for k in ("seed", "decay", "fit_ensembles", "fit_max_steps", "fit_tau_factor",
                                             "fit_check_every")}
         if config.below_previous != CampaignConfig.below_previous:   # keyed only when set: default keys unchanged
@@ -540,7 +548,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     echo("Monte Carlo and load comparisons:")
     jobs = []
     for name, (path, like) in configs.items():
-        key = _digest(pool_key, folder_digest(path), config.montecarlo_runs, config.seed)
+        key = _digest(pool_key, bundle_digest(path), config.montecarlo_runs, config.seed)
         jobs.append(("montecarlo", inside(out / "montecarlo", name), key,
                      f"Monte Carlo {name} ({config.montecarlo_runs} runs)", (like, out / "memo", config)))
     for test in tests:
