@@ -606,3 +606,18 @@ def test_a_composite_fit_is_pooled_as_one_canopy_per_group(tmp_path):
     medians = sorted(np.median(r.draws["cluster.drogue.cds_o"]) / area for r in records)
     np.testing.assert_allclose(sorted(result.entries[("drogue", "parachute", "cd_o")].per_canopy["median"]),
                                medians, rtol=1e-3)
+
+
+@pytest.mark.parametrize("kind, problem", [("missing", "not found"), ("file", "is a file, not a fit folder"),
+                                           ("broken link", "is a link to nothing (a broken symbolic link")])
+def test_read_summary_says_what_stands_in_place_of_a_fit_folder(tmp_path, kind, problem):
+    from cpas_bayes.inference.fit_folder import read_summary
+
+    path = tmp_path / "fit"
+    if kind == "file":
+        path.write_text("x")
+    elif kind == "broken link":
+        path.symlink_to(tmp_path / "gone")
+    with pytest.raises(InputError) as err:
+        read_summary(path)
+    assert err.value.problem.startswith(problem), str(err.value)

@@ -54,13 +54,19 @@ MAX_JSON_BYTES = 50_000_000
 MAX_JSON_DEPTH = 64
 
 
+def broken_link(path):
+    """Whether ``path`` is a symbolic link to nothing: its target missing, or a loop of links."""
+    path = Path(path)
+    return path.is_symlink() and not path.exists()
+
+
 def not_a_file(path):
     """Why an existing ``path`` is not a regular file to read (a broken link or loop of links, a folder, a pipe
     or device), or None if it is one or is not there at all."""
     path = Path(path)
     if not os.path.lexists(path) or path.is_file():
         return None
-    if path.is_symlink() and not path.exists():
+    if broken_link(path):
         return "is a link to nothing (a broken symbolic link, or a loop of links)"
     if path.is_dir():
         return "is a folder, not a file"

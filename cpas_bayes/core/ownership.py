@@ -36,6 +36,7 @@ import secrets
 from pathlib import Path
 
 from cpas_bayes.core.errors import InputError
+from cpas_bayes.core.inputs import broken_link
 
 try:  # POSIX; without it, folders are created without the creator's lock
     import fcntl
@@ -256,7 +257,7 @@ def check_output(path, option="--out") -> Path:
             raise OutputError(path, "", f"the name '{part[:40]}…' has {len(os.fsencode(part))} bytes; the file "
                                         f"system allows {name_max}", f"use shorter names, or {fix_other}")
     if os.path.lexists(path):
-        if path.is_symlink() and not path.exists():
+        if broken_link(path):
             raise OutputError(path, "", "is a link to nothing (a broken symbolic link, or a loop of links); "
                                         "the link was left as it is", f"{fix_other}, or remove the link")
         if not path.is_dir():

@@ -36,7 +36,7 @@ import xarray as xr
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.summaries import quantile_summary
 from cpas_bayes.core.files import atomic_path, jsonable, write_json
-from cpas_bayes.core.inputs import name_problem, read_json
+from cpas_bayes.core.inputs import broken_link, name_problem, read_json
 from cpas_bayes.physics.inflation import stage_key
 from cpas_bayes.inference.stopping import TAIL_QUANTILES
 from cpas_bayes.stats.priors import prior_from_table
@@ -139,7 +139,8 @@ def read_summary(folder) -> dict:
     folder = Path(folder)
     path = folder / SUMMARY_NAME
     if not path.exists():
-        problem = ("not found" if not (folder.exists() or folder.is_symlink()) else
+        problem = ("is a link to nothing (a broken symbolic link, or a loop of links)" if broken_link(folder) else
+                   "not found" if not folder.exists() else
                    "is a file, not a fit folder" if not folder.is_dir() else f"no {SUMMARY_NAME}: not a fit folder")
         raise InputError(folder, "", problem, "pass folders written by 'cpas-bayes fit BUNDLE --out FOLDER'")
     fix = _refit(folder)
