@@ -3,6 +3,7 @@
 import math
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -389,6 +390,7 @@ class _CountingModel:
 
     def __init__(self, parameters, log_posterior):
         self.parameters, self.log_posterior, self.calls = parameters, log_posterior, 0
+        self.test = SimpleNamespace(source=Path("bundles/T1"), label="T1")
 
     def __call__(self, theta):
         self.calls += 1
@@ -404,10 +406,12 @@ def test_find_map_gives_up_drawing_starts_and_names_the_priors_at_fault():
     params = [SimpleNamespace(name="D3.cds_o", prior=Normal(0.6, 0.1)),
               SimpleNamespace(name="D3.s1.eps", prior=Uniform(0.1, 0.9))]
     nowhere = _CountingModel(params, lambda theta: np.full(len(theta), -np.inf))
-    with pytest.raises(ValueError, match=r"no start with a finite log posterior .*not finite there for D3\.s1\.eps"):
+    # bad input, said as a refusal naming the bundle (exit status 2), not as an internal error
+    with pytest.raises(InputError, match=r"^bundles/T1: no start with a finite log posterior .*not finite there "
+                                         r"for D3\.s1\.eps.* Fix: check the priors"):
         find_map(nowhere, np.random.default_rng(0), starts=6, guesses=[np.array([0.6, 5.0])])
     assert nowhere.calls <= 100 * 6 + 1
-    with pytest.raises(ValueError, match="every prior is finite there, the likelihood is not"):
+    with pytest.raises(InputError, match="every prior is finite there, the likelihood is not"):
         find_map(nowhere, np.random.default_rng(0), starts=6, guesses=[np.array([0.6, 0.5])])
     # finite only within 1e-4 of the guess, where no jittered start lands: the search goes on from the guess
     def spike(theta):

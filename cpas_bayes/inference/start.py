@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import optimize
 
+from cpas_bayes.core.errors import InputError
 from cpas_bayes.stats.model import TestModel
 
 
@@ -156,10 +157,14 @@ def find_map(model: TestModel, rng, starts=6, guesses=None):
     if len(candidates) < starts and not np.isfinite(model(np.array(candidates))).any():
         with np.errstate(all="ignore"):
             bad = [p.name for p, x in zip(model.parameters, guess) if not np.isfinite(p.prior.logpdf(x))]
-        raise ValueError(f"no start with a finite log posterior found near the first guess ({tries} jittered "
+        # bad input, not a fault of the program: said as a refusal (exit status 2), not an internal error
+        test = model.test
+        raise InputError(test.source if test.source else test.label, "",
+                         f"no start with a finite log posterior found near the first guess ({tries} jittered "
                          "draws): " + (f"the prior density is not finite there for {', '.join(bad)}" if bad else
-                                       "every prior is finite there, the likelihood is not")
-                         + "; check the priors (a --priors file) and the bundle's stated values")
+                                       "every prior is finite there, the likelihood is not"),
+                         "check the priors (the test's prior files, a --priors file) and the bundle's stated values "
+                         "(weights, drag areas, stage starts)")
     best_x, best_f = None, np.inf
     for x0 in candidates:
         x, f = _polished_minimum(model, x0)
