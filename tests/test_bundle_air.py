@@ -137,7 +137,7 @@ def test_sigma_columns_and_density_with_blanks(tmp_path):
     rows = [{**r, "G_sigma": 0.02} if "G" in r else
             {**r, "v_north_sigma": 0.3, "v_east_sigma": 0.3, "v_up_sigma": 0.5,
              **({"density": 0.9} if r["time"] < 1 else {})} for r in ROWS]
-    doc = edited(sigma={"F_D1": 10.0})
+    doc = edited(sigma={"F_D1": 10.0}, atmosphere=None)
     test = read_bundle(write_logger(tmp_path / "log", doc, rows, header))
     gnss = np.isin(test.time, GNSS_TIMES)
     np.testing.assert_array_equal(test.data["G_sigma"], np.where(gnss, np.nan, 0.02))
@@ -263,6 +263,21 @@ def _nan_text(folder):
     return i + 1
 
 
+def _sigma_twice(folder):
+    rows = [{**r, "v_up_sigma": 0.5} if "v_up" in r else r for r in ROWS]
+    write_logger(folder, rows=rows, header=HEADER + ["v_up_sigma"])     # DOC's [sigma] also gives v_up
+
+
+def _g_beside_axes(folder):
+    rows = [{**r, "accel_x": 0.0, "accel_y": 0.0, "accel_z": r["G"]} if "G" in r else r for r in ROWS]
+    write_logger(folder, rows=rows, header=HEADER + ["accel_x", "accel_y", "accel_z"])
+
+
+def _density_beside_atmosphere(folder):
+    rows = [{**r, "density": 0.9} if "v_up" in r else r for r in ROWS]
+    write_logger(folder, rows=rows, header=HEADER + ["density"])         # DOC has an [atmosphere] profile
+
+
 LOGGER_REFUSALS = [
     # id, defect (returns a row number where the place needs one), file, place, problem, fix
     ("half-blank velocity row", _half_blank_row, "data.csv", "row {row}, columns 'v_north', 'v_east', 'v_up'",
@@ -304,6 +319,13 @@ LOGGER_REFUSALS = [
      "a 1-sigma of 0 for a sample of 'v_up' (no sensor is exact)", "give the sensor's 1-sigma"),
     ("zero sigma in [sigma]", _logger(sigma={"G": 0.0, "v_north": 0.1, "v_east": 0.1, "v_up": 0.1, "F_D1": 10.0}),
      "test.toml", "key 'sigma.G'", "a 1-sigma of 0 for a sample of 'G'", "give the sensor's 1-sigma"),
+    ("a sigma column beside its [sigma] entry", _sigma_twice, "test.toml", "key 'sigma.v_up'",
+     "the 1-sigma of 'v_up' is given twice: here and as data.csv's column 'v_up_sigma'",
+     "keep one: remove 'v_up' from [sigma]"),
+    ("G beside body axes", _g_beside_axes, "data.csv", "columns 'G', 'accel_x', 'accel_y', 'accel_z'",
+     "data.csv gives both G and accelerometer body axes", "keep G (the sensed load factor, g) or accel_x"),
+    ("a density column beside [atmosphere]", _density_beside_atmosphere, "test.toml", "key 'atmosphere'",
+     "a density profile is given here and as data.csv's column 'density'", "keep one: remove [atmosphere]"),
     ("nan written in a velocity cell", _nan_text, "data.csv", "row {row}, column 'v_north'",
      "the cell is 'nan', not a finite number", "is empty where the channel has no sample"),
 ]
@@ -433,3 +455,18 @@ def test_the_reconstruction_with_an_unstated_wind_sigma_follows_the_stated_one()
     estimate = air.best_estimate_trajectory(unstated)
     assert estimate.misfit_warning() is None
     assert estimate.frame["airspeed"].min() > 5.0                  # a steady descent, not a stall to 0.01 m/s
+
+
+def test_declared_rates_that_disagree_with_the_samples_are_warned_of(tmp_path):
+    """[rate] G = 1000 on 20 Hz samples, or v = 0.5 on 5 Hz ones, can be right (a decimated or a resampled
+    logger) but is more often a slip: validate's summary says so, naming the samples' own rate; rates that
+    match (DOC's) give no warning."""
+    assert summary(read_bundle(write_logger(tmp_path / "ok")))["warnings"] == []
+    doc = edited(rate={"G": 1000.0, "v": 0.5, "altitude": 5.0})
+    warnings = summary(read_bundle(write_logger(tmp_path / "off", doc)))["warnings"]
+    assert len(warnings) == 2, warnings
+    g, v = warnings
+    assert g.startswith("test.toml [rate] G = 1000 Hz, but the 'G' samples are 50 ms apart (20 Hz)"), g
+    assert "if the logger averaged over each interval, declare G = 20" in g
+    assert v.startswith("test.toml [rate] v = 0.5 Hz, but the 'v_north' samples are 200 ms apart (5 Hz)"), v
+    assert "resampled onto a finer grid; otherwise declare v = 5" in v

@@ -234,9 +234,10 @@ def qbar_not_positive(draw, plan, files):
 
 def negative_sigma_cell(draw, plan, files):
     sigma_columns = [c for c in plan.columns if c.endswith("_sigma")]
-    if not sigma_columns:  # every sigma is a [sigma] constant: give G a column
+    if not sigma_columns:  # every sigma is a [sigma] constant: give G a column in place of its entry
         lines = files.read_rows()
         files.write_rows([r + [c] for r, c in zip(lines, ["G_sigma"] + ["0.1"] * plan.n_rows)])
+        files.delete_key("sigma", "G")   # both at once are refused as given twice
         sigma_columns = ["G_sigma"]
     row, column = rows(draw, plan), draw(st.sampled_from(sigma_columns))
     files.set_cell(row, column, repr(-draw(floats(1e-9, 1e3))))
@@ -330,6 +331,18 @@ def missing_sigma(draw, plan, files):
     else:
         files.delete_key("sigma", channel)
     return CSV, f"column '{channel}_sigma'", f"no 1-sigma for '{channel}'"
+
+
+def sigma_given_twice(draw, plan, files):
+    """A channel's 1-sigma as a column and as a [sigma] entry: one would be silently ignored."""
+    channel = draw(st.sampled_from(["G", "qbar"] + [e["load_cell"] for e in plan.doc["parachute"]
+                                                     if "load_cell" in e]))
+    if f"{channel}_sigma" in plan.columns:
+        files.set_key("sigma", channel, value=0.5)
+    else:
+        lines = files.read_rows()
+        files.write_rows([r + [c] for r, c in zip(lines, [f"{channel}_sigma"] + ["0.5"] * plan.n_rows)])
+    return TOML, f"key 'sigma.{channel}'", f"the 1-sigma of '{channel}' is given twice"
 
 
 # Issue #18: what a careless or adversarial user hands over.
@@ -435,7 +448,7 @@ def trailing_commas(draw, plan, files):
 DEFECTS = [missing_toml, missing_csv, missing_required_column, missing_named_column, non_numeric_cell,
            non_finite_cell, time_repeated, time_decreasing, qbar_not_positive, negative_sigma_cell,
            negative_sigma_entry, negative_sigma_key, unknown_units, unknown_kind, unknown_inflation,
-           stages_out_of_order, parachute_without_stages, duplicate_parachute_id, missing_sigma,
+           stages_out_of_order, parachute_without_stages, duplicate_parachute_id, missing_sigma, sigma_given_twice,
            unknown_key, unsafe_name, implausible_cell, record_beyond_an_hour, stage_outside_record,
            column_used_twice, trailing_commas]
 

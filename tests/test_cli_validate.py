@@ -208,3 +208,21 @@ def test_fit_and_diagnose_refuse_a_bad_prior_file_before_any_work(example_dir, c
     assert code == 2
     assert err.startswith(f"error: {path}, key 'first.n_p.high': must be a finite number, got inf. Fix: ")
     assert not out.exists()
+
+
+def test_validate_refuses_a_logger_record_that_reduce_would_refuse(tmp_path, capsys):
+    """A logger record cut 0.95 s in holds 6 receiver samples but only 1 that its accelerometer readings span
+    at every latency the fit allows: reduce refuses it, and now validate does too, naming data.csv."""
+    from dataclasses import replace
+
+    from cpas_bayes.data.bundle_write import write_bundle
+    from cpas_bayes.data.synth_logger import synthesize_logger
+
+    test, _ = synthesize_logger("logger-drop", 1)
+    t = test.data["time"].to_numpy(float)
+    folder = write_bundle(replace(test, data=test.data[t <= 0.95].reset_index(drop=True)), tmp_path / "short")
+    code, out, err = run(capsys, "validate", folder)
+    assert code == 2 and out == ""
+    assert err.startswith(f"refused: {folder / 'data.csv'}, columns 'v_north', 'v_east', 'v_up': only 1 receiver "
+                          "sample(s) are stamped"), err
+    assert "Fix: give a record whose accelerometer readings run from release past at least 3" in err

@@ -6,9 +6,8 @@ the place and the fix (exit status 2); an unexpected fault ends with a short
 message (exit status 1) and the traceback only when ``CPAS_BAYES_DEBUG=1``.
 
 Every ``--out`` is checked while the command line is parsed (``app.options.out_option``, the rule of
-:func:`cpas_bayes.core.ownership.check_output`:
-new, empty, or written by cpas-bayes); an output that cannot be written (no
-permission, disk full, a name too long) ends like bad input, naming the path.
+:func:`cpas_bayes.core.ownership.check_output`: new, empty, or written by cpas-bayes); an output that cannot
+be written (no permission, disk full, a name too long) ends like bad input, naming the path.
 SIGTERM is handled like Ctrl-C: temporary files removed, workers stopped,
 exit status 130.
 """
@@ -69,6 +68,7 @@ def _format_summary(s):
     lines.append(f"  channels: {', '.join(s['channels'])}")
     if "air_data" in s:
         lines.append(f"  air data: {s['air_data']}")
+    lines += [f"  warning: {w}" for w in s.get("warnings", ())]
     return "\n".join(lines)
 
 
@@ -100,7 +100,7 @@ def validate(bundles, as_json, priors):
 
     Exit status is non-zero if any bundle or the prior file is refused; every refusal is printed.
     """
-    from cpas_bayes.data.reduction import check_load_cells
+    from cpas_bayes.data.reduction import check_reducible
 
     failures, summaries = 0, []
     if priors is not None:
@@ -114,7 +114,7 @@ def validate(bundles, as_json, priors):
         try:
             test = read_bundle(path)
             _check_priors(priors, test)
-            check_load_cells(test)   # what every later step needs of the cluster's load cells
+            check_reducible(test)   # what every later step needs of the load cells and the record
             summaries.append(summary(test))
         except InputError as exc:
             failures += 1

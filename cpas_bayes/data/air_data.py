@@ -13,10 +13,14 @@ bundles"). Its test.toml may then hold:
     ``altitude``, ``density``: a measured density profile (a balloon sounding)
     used in place of the 1976 standard atmosphere.
 ``[rate]``
-    ``G``, ``v``, ``altitude``: each channel's declared sample rate, Hz. A
-    logger averages (or low-pass filters) over its sample interval, so the model
-    averages its prediction over 1/rate before each sample. Absent: the
-    median interval between the channel's own (non-blank) samples.
+    ``G``, ``v``, ``altitude``: each channel's declared sample rate, Hz. An
+    accelerometer logger averages (or low-pass filters) over its sample
+    interval, so the model averages its G prediction over 1/rate before each
+    sample. Absent: the median interval between the channel's own (non-blank)
+    samples. The receiver's velocity and altitude are modelled as point
+    samples stamped late by a fitted latency (a receiver's filter delays, it
+    does not box-average), so their rates are only shown and checked
+    (:func:`rate_warnings`).
 
 Everything here is SI: m, m/s, kg/m³, Hz. Pure data and interpolation; the
 reading and checking live in :mod:`cpas_bayes.data.bundle_air`.
@@ -31,6 +35,8 @@ import numpy as np
 # Data columns a logger bundle may hold, canonical names (each may have a ``<name>_sigma``).
 VELOCITY_COLUMNS = ("v_north", "v_east", "v_up")
 RATE_CHANNELS = ("G", "v", "altitude")
+RATE_COLUMNS = {"G": "G", "v": "v_north", "altitude": "altitude"}   # the column whose samples a rate describes
+RATE_MISMATCH = 2.0   # a declared rate this many times faster or slower than the samples' own is questioned
 # The receiver's latency prior (mean, 1-sigma), s: a sample stamped t shows the state at t − latency. Receivers
 # stamp velocity late by their filter's delay, up to ~1.5 s. The fit's prior (air_reconstruction.air_priors) and
 # the wind projection's best guess (cpas_bayes.data.attitude, kept for comparison) share it.
@@ -90,3 +96,34 @@ def sample_interval(data, column, spec: AirDataSpec | None, channel):
         return 1.0 / float(spec.rates[channel])
     t, _ = channel_samples(data, column)
     return float(np.median(np.diff(t))) if t.size > 1 else 0.0
+
+
+def rate_warnings(data, spec: AirDataSpec | None):
+    """Messages for declared rates that disagree with their channel's samples by more than RATE_MISMATCH×.
+
+    Either way round the declaration can be right (a faster logger decimated without averaging; a slower one
+    resampled onto a finer grid), so these are warnings, not refusals; but both are more often a slip (a rate
+    in the wrong unit, or the logger's nominal rate where the file holds another), and the G rate sets the
+    window the accelerometer's prediction is averaged over: on 20 Hz samples a declared 1,000 Hz leaves the
+    averaged-away part of a fast peak to the inflation parameters.
+    """
+    out = []
+    for channel, rate in ({} if spec is None else spec.rates).items():
+        column = RATE_COLUMNS[channel]
+        t, _ = channel_samples(data, column)
+        if t.size < 3:
+            continue
+        spacing = float(np.median(np.diff(t)))
+        ratio = float(rate) * spacing          # 1 when the declaration is the samples' own rate
+        if 1.0 / RATE_MISMATCH <= ratio <= RATE_MISMATCH:
+            continue
+        own = f"the '{column}' samples are {spacing * 1e3:.3g} ms apart ({1.0 / spacing:.3g} Hz)"
+        if ratio > RATE_MISMATCH:
+            why = ("right only if a faster logger's samples were kept without averaging; if the logger averaged "
+                   f"over each interval, declare {channel} = {1.0 / spacing:.3g}")
+        else:
+            why = ("right only if a slower logger's samples were resampled onto a finer grid; otherwise declare "
+                   f"{channel} = {1.0 / spacing:.3g}")
+        out.append(f"test.toml [rate] {channel} = {float(rate):g} Hz, but {own}: {why}, or remove the entry "
+                   "(the samples' own rate is then used)")
+    return out

@@ -57,7 +57,7 @@ import pandas as pd
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.data.air_data import LATENCY_PRIOR, VELOCITY_COLUMNS, WIND_SIGMA_WITHOUT_PROFILE, channel_samples, \
     sample_interval
-from cpas_bayes.data.bundle import FlightTest, with_data
+from cpas_bayes.data.bundle import CSV_NAME, FlightTest, with_data
 from cpas_bayes.data.logger_events import EventNotFound, detect_release
 from cpas_bayes.physics import flight_path as fp
 from cpas_bayes.physics.atmosphere import TOP_GEOPOTENTIAL_ALTITUDE, standard_density
@@ -115,6 +115,7 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     """The likelihood's samples of a logger bundle; refuses one too short to reconstruct."""
     d = test.data
     spec = test.air_data
+    csv = test.source / CSV_NAME if test.source else test.label   # what the refusals below name
     t_a, g = channel_samples(d, "G")
     sigma_a = d["G_sigma"].to_numpy(float)[np.isfinite(d["G"].to_numpy(float))]
     # A record that starts hanging under the carrier (G ≈ 1, lifted, not dragged) is reconstructed from its
@@ -125,7 +126,7 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         release = 0.0 if t_a[0] < 0.0 < t_a[-1] else -np.inf
     after = t_a >= release
     if after.sum() < 10:   # a release found at the record's end: nothing after it is drag against the airspeed
-        raise BundleError(test.label, "column 'G'", f"the release is found at {release:.3f} s, leaving "
+        raise BundleError(csv, "column 'G'", f"the release is found at {release:.3f} s, leaving "
                           f"{int(after.sum())} readings after it",
                           "give a record that continues after release (at least 10 readings of G)")
     t_a, g, sigma_a = t_a[after], g[after], sigma_a[after]
@@ -138,10 +139,12 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     lo, hi = LATENCY_RANGE
     keep = (t_v >= t_a[0]) & (t_v - lo <= t_a[-1])
     if keep.sum() < 3:
-        raise BundleError(test.label, "columns 'v_north', 'v_east', 'v_up'",
-                          f"only {int(keep.sum())} receiver sample(s) lie between {t_a[0]:g} and "
-                          f"{t_a[-1] + lo:g} s, inside the accelerometer's record",
-                          "give a record in which the accelerometer's readings span the receiver's samples")
+        raise BundleError(csv, "columns 'v_north', 'v_east', 'v_up'",
+                          f"only {int(keep.sum())} receiver sample(s) are stamped from the first reading of G used "
+                          f"({t_a[0]:g} s, at or after release) to {-lo:g} s before the last ({t_a[-1] + lo:g} s): "
+                          f"a receiver's sample may show the state up to {-lo:g} s after its stamp, which must "
+                          "lie inside the accelerometer's record", "give a record whose accelerometer readings "
+                          f"run from release past at least 3 receiver samples and {-lo:g} s beyond them")
     t_h, h = channel_samples(d, "altitude")
     h_rows = np.isfinite(d["altitude"].to_numpy(float))
     h_sigma = d["altitude_sigma"].to_numpy(float)[h_rows]
@@ -159,13 +162,13 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     alt = np.arange(max(float(np.min(h)) - span, ATMOSPHERE_FLOOR),
                     min(float(np.max(h)) + span, TOP_GEOPOTENTIAL_ALTITUDE), 1.0)
     if alt.size < 2:
-        raise BundleError(test.label, "column 'altitude'", f"every altitude is above {TOP_GEOPOTENTIAL_ALTITUDE:g} m, "
+        raise BundleError(csv, "column 'altitude'", f"every altitude is above {TOP_GEOPOTENTIAL_ALTITUDE:g} m, "
                           "where the standard atmosphere ends", "check the altitude's unit (m or ft)")
     if "density" in d and np.isfinite(d["density"].to_numpy(float)).any():
         # A measured density column: ρ against the logged altitude at the same rows.
         both = np.isfinite(d["density"].to_numpy(float)) & np.isfinite(d["altitude"].to_numpy(float))
         if both.sum() < 2:
-            raise BundleError(test.label, "column 'density'", f"{int(both.sum())} row(s) hold both a density and "
+            raise BundleError(csv, "column 'density'", f"{int(both.sum())} row(s) hold both a density and "
                               "an altitude; the density is read against the altitude of its rows",
                               "give the density on rows that have the altitude (at least 2), or leave the column "
                               "empty to use the standard atmosphere")
@@ -173,7 +176,7 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         # weather moves density by ±20 % at most from the standard atmosphere; a unit slip by far more
         ratio = float(np.median(rho_d / standard_density(np.clip(h_d, ATMOSPHERE_FLOOR, TOP_GEOPOTENTIAL_ALTITUDE))))
         if not 1 / 3 <= ratio <= 3:
-            raise BundleError(test.label, "column 'density'", f"the density is {ratio:.3g}× the standard "
+            raise BundleError(csv, "column 'density'", f"the density is {ratio:.3g}× the standard "
                               "atmosphere's at the logged altitude", "check its unit (the bundle's: kg/m³ in an "
                               "SI bundle, slug/ft³ in a US one) and the altitude's")
         order = np.argsort(h_d)

@@ -34,7 +34,7 @@ from cpas_bayes.core.units import UNIT_SYSTEMS, UnitSystem, unit_system
 from cpas_bayes.data import limits
 from cpas_bayes.data.air_data import AirDataSpec
 from cpas_bayes.data.bundle_air import AIR_TABLES, LOGGER_QUANTITY, air_summary, check_measured_columns, \
-    logger_bundle, logger_columns, parachute_channels, parse_air_tables, refuse_air_tables, \
+    logger_bundle, logger_columns, parachute_channels, parse_air_tables, refuse_air_tables, refuse_conflicts, \
     sigma_channels
 from cpas_bayes.data.bundle_csv import CSV_NAME, TOML_NAME, csv_header, numeric_column, read_csv, sigma_column
 from cpas_bayes.data.limits import MAX_COLUMN_NAME, check_column, check_record, check_value
@@ -491,6 +491,7 @@ def read_bundle(folder) -> FlightTest:
     reader = TomlReader(toml_path, units)
 
     raw = read_csv(csv_path)
+    refuse_conflicts(raw.columns, meta, csv_path)
     columns = {}
 
     def need(column, why, spec):
@@ -586,7 +587,7 @@ def summary(test: FlightTest) -> dict:
             for p in test.parachutes
         ],
         "channels": test.channels,
-        **({"air_data": air_summary(test)} if test.air_data is not None else {}),
+        **(air_summary(test) if test.air_data is not None else {}),
     }
 
 

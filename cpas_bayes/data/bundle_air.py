@@ -27,7 +27,7 @@ from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.inputs import shown
 from cpas_bayes.data import limits
 from cpas_bayes.data.air_data import RATE_CHANNELS, VELOCITY_COLUMNS, WIND_SIGMA_DEFAULT, AirDataSpec, DensityProfile, \
-    WindProfile, sample_interval
+    WindProfile, rate_warnings, sample_interval
 from cpas_bayes.data.attitude import NORM_TOLERANCE, swing_load_factor
 from cpas_bayes.data.bundle_csv import TOML_NAME, blank_column
 from cpas_bayes.data.limits import check_column, check_value
@@ -162,6 +162,34 @@ def refuse_air_tables(doc, reader, logger):
 
 # ---------------------------------------------------------------------------
 # data.csv
+
+def refuse_conflicts(names, meta, csv_path):
+    """Refuse what data.csv (column ``names``) and test.toml (``meta``) both say, where one would silently
+    win: a channel's 1-sigma as a ``<column>_sigma`` column and a [sigma] entry; in a logger bundle ``G``
+    beside the body axes, and a ``density`` column beside an [atmosphere] profile."""
+    toml_path = Path(csv_path).parent / TOML_NAME
+    names, logger = set(names), logger_bundle(names)
+    if logger is None:          # neither kind: check_measured_columns says so first
+        return
+    for key in meta.sigma:
+        if f"{key}_sigma" in names:
+            raise BundleError(toml_path, f"key 'sigma.{key}'", f"the 1-sigma of '{key}' is given twice: here and "
+                              f"as data.csv's column '{key}_sigma'", f"keep one: remove '{key}' from [sigma] (the "
+                              f"column gives each sample its own 1-sigma) or remove the column '{key}_sigma'")
+    if not logger:
+        return
+    axes = [c for c in ACCEL_AXES if c in names]
+    if "G" in names and axes:
+        raise BundleError(csv_path, f"columns 'G', {', '.join(repr(c) for c in axes)}", "data.csv gives both G "
+                          "and accelerometer body axes: two readings of one accelerometer, and one would be "
+                          "ignored", "keep G (the sensed load factor, g) or accel_x, accel_y, accel_z (three body "
+                          "axes, g), not both")
+    if "density" in names and meta.air_data is not None and meta.air_data.atmosphere is not None:
+        raise BundleError(toml_path, "key 'atmosphere'", "a density profile is given here and as data.csv's column "
+                          "'density': two densities for one flight, and one would be ignored",
+                          "keep one: remove [atmosphere] (the column gives the density along the record) or the "
+                          "column 'density'")
+
 
 def _channel(raw, column, spec, units, path):
     values = blank_column(raw, column, path)
@@ -374,8 +402,9 @@ def logger_columns(raw, meta, path):
 
 
 def air_summary(test):
-    """One line on a logger bundle's air data for ``cpas-bayes validate``, e.g. ``"GNSS velocity (41 samples
-    at 5 Hz), altitude (41 samples), wind profile (3 levels)"``."""
+    """A logger bundle's part of ``cpas-bayes validate``'s summary: ``air_data``, one line such as ``"GNSS
+    velocity (41 samples at 5 Hz), altitude (41 samples), wind profile (3 levels)"``, and ``warnings``, its
+    declared rates that disagree with the samples (:func:`~cpas_bayes.data.air_data.rate_warnings`)."""
     spec, data = test.air_data, test.data
     n_v, n_h = (int(np.isfinite(data[c]).sum()) for c in ("v_north", "altitude"))
     step = sample_interval(data, "v_north", spec, "v")
@@ -386,4 +415,4 @@ def air_summary(test):
         parts.append("constant wind" if levels == 1 else f"wind profile ({levels} levels)")
     if spec is not None and spec.atmosphere is not None:
         parts.append(f"density profile ({len(spec.atmosphere.altitude)} levels)")
-    return ", ".join(parts)
+    return {"air_data": ", ".join(parts), "warnings": rate_warnings(data, spec)}

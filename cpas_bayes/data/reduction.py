@@ -78,6 +78,7 @@ import numpy as np
 import pandas as pd
 
 from cpas_bayes.core.errors import InputError
+from cpas_bayes.data.air_data import rate_warnings
 from cpas_bayes.data.bundle import TOML_NAME, FlightTest
 from cpas_bayes.data.friction import SCALE_MODES, ScaleFactor, calibrate_scale_factor
 from cpas_bayes.data.peaks import (DEFAULT_PEAK_SMOOTHING, peak_filter_width, peaks_and_load_share,
@@ -177,6 +178,7 @@ class Reduction:
     load_share: tuple
     peak_smoothing: float = DEFAULT_PEAK_SMOOTHING
     air_estimate: object = None   # a logger bundle's best-estimate trajectory (data.air_reconstruction)
+    rate_warnings: tuple = ()     # its declared rates that disagree with the samples (data.air_data)
 
     @property
     def csv_columns(self):
@@ -203,9 +205,10 @@ class Reduction:
 
     @property
     def warnings(self):
-        """What to know before trusting the numbers: a logger bundle's trajectory that misses its receiver."""
+        """What to know before trusting the numbers: a logger bundle's declared rates that disagree with its
+        samples, and its trajectory that misses the receiver."""
         said = self.air_estimate.misfit_warning() if self.air_estimate is not None else None
-        return [said] if said else []
+        return list(self.rate_warnings) + ([said] if said else [])
 
     def to_json(self):
         u = self.test.units
@@ -234,10 +237,11 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
     ``peak_smoothing`` the peak filter's width (s), 0 for raw maxima.
     """
     mode = _check_mode(test, scale)
-    air_estimate = None
+    air_estimate, said = None, ()
     if not test.measured_qbar:
         # A logger bundle: q̄ from the best-estimate trajectory, at the accelerometer's readings.
         from cpas_bayes.data.air_reconstruction import best_estimate_trajectory, with_best_estimate
+        said = tuple(rate_warnings(test.data, test.air_data))   # of the logged channels, replaced below
         air_estimate = best_estimate_trajectory(test)
         test = with_best_estimate(test, air_estimate)
     d = test.data
@@ -275,7 +279,7 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
                              "drop --window, or add load_cell columns to the bundle")
         frame = pd.DataFrame(cols)
         peaks, _ = peaks_and_load_share(cols, intervals, (), width)
-        return Reduction(test, frame, None, peaks, (), peak_smoothing, air_estimate)
+        return Reduction(test, frame, None, peaks, (), peak_smoothing, air_estimate, said)
 
     # Fly-out-corrected (Eq. 13) but unscaled loads and drag areas (Eq. 11, 12).
     axial, axial_s = {}, {}
@@ -337,7 +341,7 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
 
     # Peaks and load share per stage.
     peaks, shares = peaks_and_load_share(cols, intervals, with_cells, width)
-    return Reduction(test, frame, scale_factor, peaks, shares, peak_smoothing, air_estimate)
+    return Reduction(test, frame, scale_factor, peaks, shares, peak_smoothing, air_estimate, said)
 
 
 # ---------------------------------------------------------------------------
@@ -354,6 +358,17 @@ def check_load_cells(test):
                          f"parachute(s) {', '.join(p.id for p in missing)} have no load cell, so the load cells "
                          "cannot be calibrated against the accelerometer total",
                          "give every parachute a load_cell column, or none to reduce the accelerometer alone")
+
+
+def check_reducible(test):
+    """What ``reduce`` refuses before any work, for ``validate`` to refuse too: a cluster's load cells in part
+    (:func:`check_load_cells`), and a logger bundle whose record cannot be reconstructed (its release at the
+    record's end, too few receiver samples inside it, a density in the wrong unit: the checks of
+    :func:`~cpas_bayes.data.air_reconstruction.logger_channels`, which reads the channels and fits nothing)."""
+    check_load_cells(test)
+    if not test.measured_qbar:
+        from cpas_bayes.data.air_reconstruction import logger_channels
+        logger_channels(test)
 
 
 def parse_window(text, source=""):
