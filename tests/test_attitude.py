@@ -333,12 +333,18 @@ def test_a_missing_quaternion_column_is_refused(attitude_files):
     assert message.startswith(str(files.csv_path)) and "column 'q_z'" in message
 
 
-def test_without_attitude_the_axes_give_their_magnitude_as_before(attitude_files):
+def test_without_attitude_the_axes_give_their_magnitude_less_its_noise_bias(attitude_files):
+    """|a|² less the noise across the force, Σσ_i² − Σ(â_i·σ_i)² (bundle_air.accelerometer_magnitude)."""
     files, _ = attitude_files
     for c in QUATERNION:
         files.drop_column(c)
     r = _readings(files.folder)
-    np.testing.assert_allclose(r["G"], np.linalg.norm(np.column_stack([r[c] for c in AXES]), axis=1), rtol=1e-12)
+    a = np.column_stack([r[c] for c in AXES])
+    sigma = np.column_stack([r[f"{c}_sigma"] for c in AXES])
+    squared = (a**2).sum(axis=1)
+    across = (sigma**2).sum(axis=1) - ((a * sigma) ** 2).sum(axis=1) / squared
+    np.testing.assert_allclose(r["G"], np.sqrt(np.maximum(squared - across, 0.0)), rtol=1e-12)
+    assert np.all(r["G"] < np.sqrt(squared))
 
 
 def test_existing_scenarios_write_g_as_before():
