@@ -39,6 +39,7 @@ class DropTruth:
     snatch_g: float = 3.0          # snatch load / weight
     speed: float = 35.0            # carrier's ground speed, north, m/s
     altitude: float = 2500.0       # m at release
+    wind_east: float = 0.0         # the air mass's velocity toward east, m/s (drag acts on the air-relative one)
 
 
 def air_density(h):
@@ -57,9 +58,10 @@ def simulate(truth: DropTruth, dt=0.001):
     for i in range(n):
         ti = t[i]
         out_v[i], out_h[i] = (vn, ve, vd), h
-        speed = math.sqrt(vn * vn + ve * ve + vd * vd)
+        ae = ve - truth.wind_east                                # air-relative velocity (vn, ae, vd)
+        speed = math.sqrt(vn * vn + ae * ae + vd * vd)
         rho = air_density(h)
-        k_drag = 0.5 * rho * speed * truth.cds_vehicle          # drag = −k_drag·v
+        k_drag = 0.5 * rho * speed * truth.cds_vehicle          # drag = −k_drag·v_air
         held = min(max((truth.release + 0.01 - ti) / 0.02, 0.0), 1.0)
         rise = min(max((ti - (truth.line_stretch - 0.02)) / 0.04, 0.0), 1.0)
         if ti < snatch_end:
@@ -67,9 +69,9 @@ def simulate(truth: DropTruth, dt=0.001):
         else:
             opening = min((ti - snatch_end) / 1.5, 1.0)
             pull = max(snatch * math.exp(-(ti - snatch_end) / 0.1), 0.5 * rho * speed ** 2 * truth.cds_canopy * opening)
-        k = (k_drag + pull / speed) / m                          # drag and parachute both oppose v
+        k = (k_drag + pull / speed) / m                          # drag and parachute both oppose v_air
         # specific force f = a − g⃗: drag and parachute, plus the carrier's support (which cancels a while held)
-        fn, fe, fd = -k * vn, -k * ve, -k * vd
+        fn, fe, fd = -k * vn, -k * ae, -k * vd
         fn, fe, fd = fn * (1 - held), fe * (1 - held), fd * (1 - held) - G0 * held
         out_f[i] = (fn, fe, fd)
         vn, ve, vd = vn + fn * dt, ve + fe * dt, vd + (fd + G0) * dt
@@ -95,12 +97,13 @@ def accel_logger(sim, rate, clock_origin, noise_g, rng, start=0.5, end=None):
     return true_t + clock_origin, values
 
 
-def gnss_logger(sim, rate, clock_origin, speed_noise, altitude_noise, rng, start=0.3, end=None):
-    """Samples of the GNSS logger: (logger time in s, velocity NED (n, 3) in m/s, altitude (n,) in m)."""
+def gnss_logger(sim, rate, clock_origin, speed_noise, altitude_noise, rng, start=0.3, end=None, latency=0.0):
+    """Samples of the GNSS logger: (logger time in s, velocity NED (n, 3) in m/s, altitude (n,) in m), each
+    stamped ``latency`` s after the instant it shows (a receiver's filter delay)."""
     t, v, h, _ = sim
     end = t[-1] - 0.3 if end is None else end
     true_t = start + rng.uniform(0, 1 / rate) + np.arange(0, end - start, 1 / rate)
     vel = np.stack([np.interp(true_t, t, v[:, k]) for k in range(3)], axis=1)
     vel += rng.normal(0.0, speed_noise, size=vel.shape)
     alt = np.interp(true_t, t, h) + rng.normal(0.0, altitude_noise, size=true_t.shape)
-    return true_t + clock_origin, vel, alt
+    return true_t + latency + clock_origin, vel, alt

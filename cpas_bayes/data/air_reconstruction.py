@@ -102,6 +102,9 @@ class LoggerChannels:
     first_velocity: np.ndarray    # (3,) its ground velocity
     density_altitude: np.ndarray  # a 1 m table of ρ(h) over the flown altitudes
     density_table: np.ndarray
+    # the record holds readings before its release: the vehicle was held (under its carrier) until the first
+    # reading kept, so a receiver sample a latency puts before it shows the held, unaccelerated state
+    held_before: bool = False
 
     def density(self, altitude):
         return np.interp(altitude, self.density_altitude, self.density_table)
@@ -192,7 +195,7 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         altitude_time=t_h[h_keep], altitude=h[h_keep], altitude_sigma=h_sigma[h_keep], altitude_lags=lags,
         wind_altitude=np.asarray(w_alt, float), wind_north=np.asarray(w_n, float),
         wind_east=np.asarray(w_e, float), wind_sigma=w_sigma, first_velocity_time=float(t_v[0]),
-        first_velocity=vel[0], density_altitude=alt, density_table=table)
+        first_velocity=vel[0], density_altitude=alt, density_table=table, held_before=bool((~after).any()))
 
 
 def air_priors(ch: LoggerChannels) -> dict:
@@ -259,7 +262,8 @@ class AirTrack:
 
     def ground_velocity_at(self, ch: LoggerChannels, times):
         """Ground velocity (B, M, 3) and altitude (B, M) at ``times`` (B, M): air velocity plus the wind there."""
-        v = fp.interpolate_rows(self.time, self.air_velocity, times, before="linear")
+        # before the first reading: held there when the vehicle was held until release; else along its slope
+        v = fp.interpolate_rows(self.time, self.air_velocity, times, before="hold" if ch.held_before else "linear")
         h = fp.interpolate_rows(self.time, self.altitude, times, before="linear")
         wn, we = ch.wind_at(h)
         v[..., 0] += wn + self.phi[:, 4:5]
@@ -502,11 +506,13 @@ def with_best_estimate(test: FlightTest, estimate: AirDataEstimate) -> FlightTes
     of air parameters moves every sample together); the fit does not read it.
     """
     d = test.data
-    rows = np.isfinite(d["G"].to_numpy(float))
+    f = estimate.frame
+    # the readings the estimate covers: from release on (a record that starts hanging under the carrier has
+    # readings before it, which are not drag against an airspeed)
+    rows = np.isfinite(d["G"].to_numpy(float)) & np.isin(d["time"].to_numpy(float), f["time"].to_numpy(float))
     keep = [c for c in d.columns if c not in VELOCITY_COLUMNS and not c.startswith("v_")
             and c not in ("altitude", "altitude_sigma", "density")]
     data = d.loc[rows, keep].reset_index(drop=True)
-    f = estimate.frame
     for c in ("qbar", "qbar_sigma", "airspeed", "gamma", "altitude", "density"):
         data[c] = f[c].to_numpy()
     return with_data(test, data)

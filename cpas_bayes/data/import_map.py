@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path, PurePath
 
 from cpas_bayes.core.errors import BundleError, InputError
@@ -25,7 +25,7 @@ from cpas_bayes.core.units import column_factor
 from cpas_bayes.data.bundle import parse_test_document
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION, MAX_START_SIGMA
 
-MAP_KEYS = ("reference", "template", "record", "events", "logger", "test")
+MAP_KEYS = ("reference", "template", "air_data", "record", "events", "logger", "test")
 LOGGER_KEYS = ("file", "time", "clock", "offset", "offset_hint", "search", "skip_rows", "delimiter", "channels")
 TIME_KEYS = ("column", "unit")
 CHANNEL_KEYS = ("column", "columns", "unit", "sign")
@@ -33,6 +33,11 @@ RECORD_KEYS = ("start", "end")
 EVENT_KEYS = ("release", "release_sigma", "line_stretch", "line_stretch_sigma", "line_stretch_threshold")
 EVENTS = ("release", "line_stretch")
 CLOCKS = ("elapsed", "wall")
+# What a map with GNSS velocity (and no airspeed or q̄ channel) makes of the air data: "reconstruct" writes a
+# logger bundle (the velocity and altitude at the receiver's own samples; q̄ is reconstructed by the package with
+# the wind, the receiver's latency and the accelerometer's scale and bias as parameters), "ground_speed" a bundle
+# with q̄ = ½ρ|v_ground|² (no wind, the receiver's lag kept). A map with an airspeed or q̄ channel is "measured".
+AIR_DATA_MODES = ("reconstruct", "ground_speed")
 ISO = "iso"
 
 # Bundle channels a logger column can feed: name -> (quantity, allowed numbers of columns, meaning).
@@ -139,6 +144,12 @@ class ImportMap:
     test_doc: dict            # [test] or the template, stage starts as written
     test_path: Path           # the file refusals about test keys name
     test_prefix: str          # "test." for the map's own [test], "" for a template
+    air_data: str | None = None   # AIR_DATA_MODES or "measured"; None while the map is being read
+
+    @property
+    def logger_bundle(self):
+        """True: the bundle is a logger bundle; False: measured air data; None: not yet known."""
+        return None if self.air_data is None else self.air_data == "reconstruct"
 
     def logger(self, name):
         return next(lg for lg in self.loggers if lg.name == name)
@@ -379,7 +390,7 @@ def bundle_metadata(import_map, events, folder):
     """The bundle's metadata with event-linked stage starts resolved; refusals name the map's (or template's) key."""
     doc = resolved_test_document(import_map, events)
     try:
-        return parse_test_document(doc, import_map.test_path, folder)
+        return parse_test_document(doc, import_map.test_path, folder, import_map.logger_bundle)
     except BundleError as exc:
         where = exc.where.replace("key '", f"key '{import_map.test_prefix}", 1)
         raise InputError(import_map.test_path, where, exc.problem, exc.fix) from None
@@ -406,7 +417,25 @@ def _check_stage_starts(m, test_doc, prefix):
                    "write start = \"line_stretch\" (or \"release\") with the delay, or remove delay")
 
 
-def _check_channels(m, loggers, test_doc, prefix, meta):
+def _air_data_mode(m, doc, loggers):
+    """The map's air_data (AIR_DATA_MODES) or "measured" for a map with an airspeed or q̄ channel."""
+    fed = {name for lg in loggers for name in lg.channels}
+    given = doc.get("air_data")
+    if fed & {"airspeed", "qbar"} or "velocity" not in fed:
+        if given is not None and fed & {"airspeed", "qbar"}:   # without either, _check_channels says what is missing
+            m.fail("air_data", "applies to a map whose air data come from GNSS velocity, with no airspeed or qbar "
+                   "channel", "remove air_data (the mapped airspeed or qbar channel is the air data)")
+        return "measured"
+    mode = m.string(doc, "air_data", "air_data", default="reconstruct")
+    if mode not in AIR_DATA_MODES:
+        near = nearest(mode, AIR_DATA_MODES)
+        m.fail("air_data", f"unknown air_data {shown(mode)}", (f"did you mean '{near}'? " if near else "") +
+               "use \"reconstruct\" (a logger bundle: q̄ reconstructed with the wind and the receiver's latency) "
+               "or \"ground_speed\" (q̄ from the ground speed: no wind, the receiver's lag kept)")
+    return mode
+
+
+def _check_channels(m, loggers, test_doc, prefix, meta, mode):
     """Every channel fed once (accel may be in several loggers), and every channel the bundle needs fed."""
     owners = {}
     for lg in loggers:
@@ -419,11 +448,16 @@ def _check_channels(m, loggers, test_doc, prefix, meta):
     if not has("accel"):
         m.fail("logger", "no logger has an accel channel: G, the release and the line stretch come from it",
                "add accel = { column = \"...\", unit = \"m/s^2\" } (or columns = [x, y, z]) to a logger's channels")
-    needs = [("airspeed", has("airspeed") or has("velocity"), "an airspeed or a velocity channel"),
-             ("gamma", has("gamma") or has("velocity") or (has("vertical_speed") and has("airspeed")),
-              "a gamma channel, a velocity channel, or vertical_speed with airspeed"),
-             ("qbar", has("qbar") or ((has("airspeed") or has("velocity")) and (has("density") or has("altitude"))),
-              "a qbar channel, or an airspeed or velocity channel with density or altitude")]
+    if mode == "reconstruct":   # a logger bundle: the receiver's velocity and an altitude, at their own samples
+        needs = [("altitude", has("altitude"), "an altitude channel (GNSS or barometric), which a logger bundle "
+                  "needs for the density and the wind")]
+    else:
+        needs = [("airspeed", has("airspeed") or has("velocity"), "an airspeed or a velocity channel"),
+                 ("gamma", has("gamma") or has("velocity") or (has("vertical_speed") and has("airspeed")),
+                  "a gamma channel, a velocity channel, or vertical_speed with airspeed"),
+                 ("qbar", has("qbar") or ((has("airspeed") or has("velocity")) and (has("density") or
+                                                                                    has("altitude"))),
+                  "a qbar channel, or an airspeed or velocity channel with density or altitude")]
     for channel, ok, what in needs:
         if not ok:
             m.fail("logger", f"the bundle needs '{channel}' and no logger channel gives it",
@@ -435,7 +469,18 @@ def _check_channels(m, loggers, test_doc, prefix, meta):
                        f"'{column}'", f"add {column} = {{ column = \"...\", unit = \"...\" }} to a logger's channels, "
                        f"or remove {key}")
     sigma = test_doc.get("sigma") if isinstance(test_doc.get("sigma"), dict) else {}
-    needed = [("G", "g", "the accelerometer's noise, e.g. 0.03"), ("qbar", "in the bundle's units", "e.g. 2 % of q̄")]
+    needed = [("G", "g", "the accelerometer's noise, e.g. 0.03")]
+    if mode == "reconstruct":
+        if "qbar" in sigma:
+            m.fail(f"{prefix}sigma.qbar", "a 1-sigma of qbar, but the map makes a logger bundle, whose q̄ the "
+                   "package reconstructs (air_data = \"reconstruct\", the default with GNSS velocity)",
+                   f"remove qbar from [{prefix}sigma] and give v_north, v_east, v_up and altitude; or write "
+                   "air_data = \"ground_speed\" for q̄ from the ground speed (no wind, the receiver's lag kept)")
+        needed += [(c, "in the bundle's speed unit", "the receiver's velocity accuracy, e.g. 0.1 m/s")
+                   for c in ("v_north", "v_east", "v_up")]
+        needed += [("altitude", "in the bundle's length unit", "e.g. 3 m for GNSS, 1 m for a barometer")]
+    else:
+        needed += [("qbar", "in the bundle's units", "e.g. 2 % of q̄")]
     needed += [(p.load_cell, "in the bundle's force unit", "the load cell's accuracy") for p in meta.parachutes
                if p.load_cell]
     for key, unit, example in needed:
@@ -452,6 +497,7 @@ def read_import_map(path, folder) -> ImportMap:
     m.keys(doc, MAP_KEYS, "")
     test_doc, test_path, prefix = _test_document(m, doc)
     _check_stage_starts(_Map(test_path), test_doc, prefix)
+    # first read as either kind of bundle (the channels, read next, say which), then as the kind they make
     preliminary = ImportMap(path, (), "", "", 0.0, None, None, 0.0, None, 0.0, 0.0, test_doc, test_path, prefix)
     meta = bundle_metadata(preliminary, None, folder)
 
@@ -465,7 +511,9 @@ def read_import_map(path, folder) -> ImportMap:
     if not raw:
         m.fail("logger", "no logger", "add a [logger.NAME] table per logger file")
     loggers = tuple(_logger(m, name, entry, quantities) for name, entry in raw.items())
-    _check_channels(m, loggers, test_doc, prefix, meta)
+    mode = _air_data_mode(m, doc, loggers)
+    _check_channels(m, loggers, test_doc, prefix, meta, mode)
+    bundle_metadata(replace(preliminary, air_data=mode), None, folder)   # what this kind of bundle refuses
 
     with_accel = [lg.name for lg in loggers if lg.has("accel")]
     reference = m.string(doc, "reference", "reference", default=with_accel[0])
@@ -500,7 +548,7 @@ def read_import_map(path, folder) -> ImportMap:
                      m.number(events, "release_sigma", "events.release_sigma", default=0.0, minimum=0.0),
                      line_stretch,
                      m.number(events, "line_stretch_sigma", "events.line_stretch_sigma", default=0.0, minimum=0.0),
-                     threshold, test_doc, test_path, prefix)
+                     threshold, test_doc, test_path, prefix, mode)
 
 
 def _with_offset(spec, offset):

@@ -15,11 +15,16 @@ The steps, each refusing bad input with the file, the place and the fix:
    ``record.end`` seconds after release (within the span every logger feeding
    the bundle covers); **time 0 is the release**. The other loggers' channels
    are interpolated (linearly) onto those rows;
-6. derived channels: G = |a|/g0 (three axes) or sign·a/g0 (one axis); airspeed
-   = |v| from GNSS velocity when no airspeed column is mapped (ground speed:
-   no wind); γ = atan2(−v_down, √(v_n² + v_e²)), or asin(v_up/V);
-   ρ = 1976 standard atmosphere at the (geometric) altitude when no density
-   column is mapped; q̄ = ½ρV² when no q̄ column is mapped;
+6. derived channels: G = |a|/g0 less its noise bias (three axes) or sign·a/g0
+   (one axis). With GNSS velocity and no airspeed or q̄ column (``air_data =
+   "reconstruct"``, the default) the bundle is a logger bundle: the velocity
+   (north, east, up) and the altitude at their loggers' own samples, blank
+   between (:func:`_assemble_logger`), for the package's reconstruction.
+   Otherwise (measured air data, or ``"ground_speed"``): airspeed = |v| from GNSS
+   velocity when no airspeed column is mapped (ground speed: no wind);
+   γ = atan2(−v_down, √(v_n² + v_e²)), or asin(v_up/V); ρ = 1976 standard
+   atmosphere at the (geometric) altitude when no density column is mapped;
+   q̄ = ½ρV² when no q̄ column is mapped;
 7. stage starts linked to an event become numbers in the bundle's time
    (start = event + delay, start_sigma = √(σ_event² + start_sigma²)), and the
    bundle is written to a temporary folder, read back with
@@ -39,15 +44,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from cpas_bayes.core.errors import BundleError, InputError
+from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import jsonable
 from cpas_bayes.core.inputs import did_you_mean, shown
 from cpas_bayes.core.units import STANDARD_GRAVITY
+from cpas_bayes.data.air_data import VELOCITY_COLUMNS
 from cpas_bayes.data.bundle import FlightTest, read_bundle
 from cpas_bayes.data.bundle_csv import parse_numbers
 from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map, skip_lines
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
+from cpas_bayes.data.reduction import check_reducible
 from cpas_bayes.data.logger_events import (Event, EventNotFound, align_clocks, detect_line_stretch, detect_release,
                                            from_acceleration, from_velocity, from_vertical_speed, sample_interval)
 from cpas_bayes.physics.atmosphere import standard_density
@@ -104,6 +111,7 @@ class ImportResult:
             release["utc"] = (_EPOCH + pd.Timedelta(self.release.time, "s")).round("us").isoformat()
         return jsonable({
             "map": str(imap.path), "time_zero": "release", "reference_logger": imap.reference,
+            "air_data": imap.air_data,
             "release": release,
             "line_stretch": {"time_after_release_s": self.line_stretch.time, "sigma_s": self.line_stretch.sigma,
                              "terms_s": self.line_stretch.terms, "given_in_map": self.line_stretch_given},
@@ -257,10 +265,18 @@ def read_logger(spec) -> LoggerRecord:
 # clocks and events
 
 
-def load_factor(accel):
-    """Sensed load factor, g: |a|/g0 for three axes, a/g0 for one signed axis (a in m/s²)."""
-    accel = np.asarray(accel, float)
-    return (np.linalg.norm(accel, axis=1) if accel.ndim == 2 else accel) / STANDARD_GRAVITY
+def load_factor(accel, sigma=None):
+    """Sensed load factor, g: |a|/g0 for three axes, a/g0 for one signed axis (a in m/s²).
+
+    With ``sigma`` (each axis' 1-sigma, g) three axes give the magnitude less its noise bias, as the bundle
+    reader does (:func:`cpas_bayes.data.bundle_air.accelerometer_magnitude`): √max(|a|² − 2σ², 0), the noise
+    across the force taken out. The events are found on the plain magnitude."""
+    accel = np.asarray(accel, float) / STANDARD_GRAVITY
+    if accel.ndim == 1:
+        return accel
+    if sigma is None:
+        return np.linalg.norm(accel, axis=1)
+    return np.sqrt(np.maximum(np.sum(accel**2, axis=1) - 2.0 * float(sigma) ** 2, 0.0))
 
 
 def shared_signal(record):
@@ -364,29 +380,107 @@ def _rows(import_map, records, offsets, release):
     return idx, t[idx]
 
 
+def _interpolated(import_map, records, offsets, channel, times):
+    """A channel's values at ``times`` on the reference clock, linear between its logger's samples."""
+    spec = import_map.feeder(channel)
+    rec, off = records[spec.name], offsets[spec.name].offset
+    values = rec.channels[channel]
+    if values.ndim == 2:
+        return np.stack([np.interp(times, rec.time + off, values[:, k]) for k in range(values.shape[1])], axis=1)
+    return np.interp(times, rec.time + off, values)
+
+
+def _own_samples(import_map, records, offsets, channel, lo, hi):
+    """A channel's own samples from ``lo`` to ``hi`` on the reference clock: (times, values)."""
+    spec = import_map.feeder(channel)
+    rec = records[spec.name]
+    t = rec.time + offsets[spec.name].offset
+    keep = (t >= lo) & (t <= hi)
+    return t[keep], rec.channels[channel][keep]
+
+
+def _source(import_map, channel, how=""):
+    spec = import_map.feeder(channel)
+    ch = spec.channels[channel]
+    return f"{spec.name}: {', '.join(ch.columns)} ({ch.unit}{', sign -1' if ch.sign < 0 else ''}){how}"
+
+
+SNAP = 1e-6   # s: a receiver sample this close to an accelerometer row shares its row (no near-duplicate times)
+
+
+def _snapped(times, rows):
+    """``times`` moved onto the nearest of ``rows`` (sorted) where within SNAP of it."""
+    i = np.clip(np.searchsorted(rows, times), 1, len(rows) - 1)
+    nearest = np.where(np.abs(rows[i - 1] - times) <= np.abs(rows[i] - times), rows[i - 1], rows[i])
+    return np.where(np.abs(nearest - times) <= SNAP, nearest, times)
+
+
+def _assemble_logger(import_map, records, offsets, meta, t_rows, idx, release):
+    """A logger bundle's columns in SI and where each came from: G and the parachute channels at the
+    accelerometer's rows, the velocity (north, east, up) and the altitude at their loggers' own samples within
+    them, blank elsewhere (docs/test-bundle.md, "Logger bundles"). Nothing is interpolated across the receiver's
+    samples, so its latency stays a parameter of the reconstruction instead of being smeared into the rows."""
+    lo, hi = t_rows[0], t_rows[-1]
+    t_v, velocity = _own_samples(import_map, records, offsets, "velocity", lo, hi)
+    t_h, altitude = _own_samples(import_map, records, offsets, "altitude", lo, hi)
+    t_v, t_h = _snapped(t_v, t_rows), _snapped(t_h, t_rows)
+    times = np.union1d(np.union1d(t_rows, t_v), t_h)
+
+    def placed(at, values):
+        out = np.full(len(times), np.nan)
+        out[np.searchsorted(times, at)] = values
+        return out
+
+    u, sigma = meta.units, meta.sigma
+    g_rec = records[import_map.g_logger]
+    accel = g_rec.spec.channels["accel"]
+    columns = {"time": times - release, "G": placed(t_rows, load_factor(g_rec.channels["accel"], sigma["G"])[idx]),
+               "G_sigma": placed(t_rows, float(sigma["G"]))}
+    sources = {"time": f"{g_rec.spec.name}: {g_rec.spec.time_column} − release, with the receiver's samples",
+               "G": _source(import_map, "accel",
+                            " magnitude less its noise bias / g0" if len(accel.columns) == 3 else " / g0")}
+    for k, column in enumerate(VELOCITY_COLUMNS):   # the map's velocity is north, east, down
+        columns[column] = placed(t_v, velocity[:, k] if k < 2 else -velocity[:, 2])
+        columns[f"{column}_sigma"] = placed(t_v, u.si(float(sigma[column]), "speed"))
+    sources["v_north, v_east, v_up"] = _source(import_map, "velocity", " north, east, −down, at its own samples")
+    columns["altitude"] = placed(t_h, altitude)
+    columns["altitude_sigma"] = placed(t_h, u.si(float(sigma["altitude"]), "length"))
+    sources["altitude"] = _source(import_map, "altitude", ", at its own samples")
+    if import_map.feeder("density") is not None:
+        columns["density"] = placed(t_h, _interpolated(import_map, records, offsets, "density", t_h))
+        sources["density"] = _source(import_map, "density", ", at the altitude's samples")
+    sources["qbar"] = ("reconstructed by reduce and fit from G, the velocity, the altitude and the wind "
+                       "(a logger bundle)")
+    for p in meta.parachutes:
+        for column, name, key, quantity in ((p.load_cell, p.load_column, "load_cell", "force"),
+                                            (p.flyout_angle, p.angle_column, "flyout_angle", None)):
+            if column:
+                columns[name] = placed(t_rows, _interpolated(import_map, records, offsets, column, t_rows))
+                value = float(sigma[column]) if key == "load_cell" else float(sigma.get(column, 0.0))
+                columns[f"{name}_sigma"] = placed(t_rows, u.si(value, quantity) if quantity else value)
+                sources[column] = _source(import_map, column)
+    return pd.DataFrame(columns), sources
+
+
 def _assemble(import_map, records, offsets, meta, t_rows, idx, release):
     """The bundle's columns in SI, and where each came from."""
+    if import_map.air_data == "reconstruct":
+        return _assemble_logger(import_map, records, offsets, meta, t_rows, idx, release)
+
     def at_rows(channel):
-        spec = import_map.feeder(channel)
-        rec, off = records[spec.name], offsets[spec.name].offset
-        values = rec.channels[channel]
-        if values.ndim == 2:
-            return np.stack([np.interp(t_rows, rec.time + off, values[:, k]) for k in range(values.shape[1])], axis=1)
-        return np.interp(t_rows, rec.time + off, values)
+        return _interpolated(import_map, records, offsets, channel, t_rows)
 
     def source(channel, how=""):
-        spec = import_map.feeder(channel)
-        ch = spec.channels[channel]
-        return f"{spec.name}: {', '.join(ch.columns)} ({ch.unit}{', sign -1' if ch.sign < 0 else ''}){how}"
+        return _source(import_map, channel, how)
 
     def has(channel):
         return import_map.feeder(channel) is not None
 
     g_rec = records[import_map.g_logger]
-    columns = {"time": t_rows - release, "G": load_factor(g_rec.channels["accel"])[idx]}
+    columns = {"time": t_rows - release, "G": load_factor(g_rec.channels["accel"], meta.sigma["G"])[idx]}
     accel = g_rec.spec.channels["accel"]
     sources = {"time": f"{g_rec.spec.name}: {g_rec.spec.time_column} − release",
-               "G": source("accel", " magnitude / g0" if len(accel.columns) == 3 else " / g0")}
+               "G": source("accel", " magnitude less its noise bias / g0" if len(accel.columns) == 3 else " / g0")}
     velocity = at_rows("velocity") if has("velocity") else None
     if has("airspeed"):
         columns["airspeed"], sources["airspeed"] = at_rows("airspeed"), source("airspeed")
@@ -466,7 +560,8 @@ def import_loggers(import_map, folder) -> ImportResult:
     idx, t_rows = _rows(import_map, records, offsets, release.time)
     data, sources = _assemble(import_map, records, offsets, meta, t_rows, idx, release.time)
     test = FlightTest(name=meta.name, phase=meta.phase, units=meta.units, vehicle=meta.vehicle,
-                      parachutes=meta.parachutes, data=data, priors_files=meta.priors_files)
+                      parachutes=meta.parachutes, data=data, priors_files=meta.priors_files,
+                      air_data=meta.air_data)
     return ImportResult(test, import_map, records, offsets, release, line, sources,
                         release_given=import_map.release is not None,
                         line_stretch_given=import_map.line_stretch is not None)
@@ -476,8 +571,8 @@ def write_import(result, out) -> Path:
     """Write the bundle and import.json atomically; the bundle is read back and checked before it is put in place."""
     def verify(tmp):
         try:
-            read_bundle(tmp)
-        except BundleError as exc:
+            check_reducible(read_bundle(tmp))   # what reduce would refuse before any work, too
+        except InputError as exc:
             raise InputError(result.import_map.path, "", f"the bundle made from the loggers would be refused: "
                              f"{Path(exc.file).name}, {exc.where}: {exc.problem}",
                              f"{exc.fix} (in the map: [record], [test] or a channel's unit)") from None
