@@ -610,3 +610,51 @@ def test_the_imported_g_of_three_noisy_axes_is_unbiased():
     assert load_factor(axes).mean() - 0.3 > 5e-3
     assert abs(load_factor(axes, 0.05).mean() - 0.3) < 1e-3
     np.testing.assert_array_equal(load_factor(axes[:, 0], 0.05), axes[:, 0] / G0)   # one signed axis: as it is
+
+
+def test_a_receiver_that_logs_its_track_gives_the_same_velocity(tmp_path, windy, capsys):
+    """Ground speed (kn), course over ground (deg) and vertical speed positive down (ArduPilot's GPS Spd,
+    GCrs, VZ) in place of north, east, down: the same logger bundle to the CSV's rounding."""
+    gnss = _windy_loggers(tmp_path, windy)
+    doc = map_document(air_data=None, gnss=gnss)
+    doc["test"]["sigma"] = dict(LOGGER_SIGMA)
+    code, _, err = run(capsys, "import", write_map(tmp_path, doc), "--out", tmp_path / "ned")
+    assert code == 0, err
+    rows = pd.read_csv(tmp_path / "gnss.csv")
+    knots = 1852.0 / 3600.0
+    speed = np.hypot(rows["vn"], rows["ve"]) / knots
+    course = np.degrees(np.arctan2(rows["ve"], rows["vn"])) % 360.0
+    _csv(tmp_path / "track.csv", ["time", "Spd", "GCrs", "VZ", "alt"],
+         [rows["time"], speed, course, rows["vd"], rows["alt"]], ["%.4f", "%.6f", "%.6f", "%.4f", "%.4f"])
+    track = dict(gnss, file="track.csv", channels={
+        "ground_speed": {"column": "Spd", "unit": "kn"}, "course": {"column": "GCrs", "unit": "deg"},
+        "vertical_speed": {"column": "VZ", "unit": "m/s", "sign": -1}, "altitude": {"column": "alt", "unit": "m"}})
+    doc = map_document(air_data=None, gnss=track)
+    doc["test"]["sigma"] = dict(LOGGER_SIGMA)
+    code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", tmp_path / "track")
+    assert code == 0, err
+    assert "v_north, v_east, v_up <- gnss: Spd, GCrs, VZ (ground_speed kn, course deg, vertical_speed m/s sign -1)" \
+        in printed
+    a, b = read_bundle(tmp_path / "ned").data, read_bundle(tmp_path / "track").data
+    np.testing.assert_array_equal(a["time"], b["time"])
+    for c in ("v_north", "v_east", "v_up", "altitude", "G"):
+        np.testing.assert_allclose(b[c], a[c], atol=1e-4, equal_nan=True, err_msg=c)
+
+
+@pytest.mark.parametrize("edit, expected", [
+    (lambda ch: ch.pop("vertical_speed"), "key 'logger.gnss.channels.vertical_speed': is missing: ground_speed "
+                                          "and course give the velocity"),
+    (lambda ch: ch.pop("course"), "key 'logger.gnss.channels.course': is missing"),
+    (lambda ch: ch.update(velocity={"columns": ["vn", "ve", "vd"], "unit": "m/s"}),
+     "key 'logger.gnss.channels.velocity': the velocity is mapped twice"),
+])
+def test_a_track_missing_a_part_or_given_twice_is_refused(tmp_path, sim, capsys, edit, expected):
+    write_loggers(tmp_path, sim)
+    doc = map_document(air_data=None)
+    doc["test"]["sigma"] = dict(LOGGER_SIGMA)
+    channels = {"ground_speed": {"column": "vn", "unit": "m/s"}, "course": {"column": "ve", "unit": "deg"},
+                "vertical_speed": {"column": "vd", "unit": "m/s"}, "altitude": {"column": "alt", "unit": "m"}}
+    edit(channels)
+    doc["logger"]["gnss"]["channels"] = channels
+    err = _refused(capsys, tmp_path, doc)
+    assert expected in err, err

@@ -45,6 +45,8 @@ ISO = "iso"
 CHANNELS = {
     "accel": ("acceleration", (1, 3), "sensed acceleration: one axis with its sign, or three axes (magnitude)"),
     "velocity": ("speed", (3,), "velocity: north, east, down"),
+    "ground_speed": ("speed", (1,), "horizontal ground speed (with course and vertical_speed: the velocity)"),
+    "course": ("angle", (1,), "course over ground, clockwise from north (with ground_speed and vertical_speed)"),
     "vertical_speed": ("speed", (1,), "vertical speed, positive up"),
     "airspeed": ("speed", (1,), "airspeed"),
     "gamma": ("angle", (1,), "flight path angle, positive above the horizon"),
@@ -103,6 +105,7 @@ class ChannelSpec:
     factor: float      # multiplies the column into SI (angles: degrees)
     sign: float        # +1 or -1 (one column only)
     quantity: str
+    parts: tuple = ()  # a velocity from a track: its ground_speed, course and vertical_speed channels
 
 
 @dataclass(frozen=True)
@@ -308,8 +311,35 @@ def _logger(m, name, entry, quantities):
     raw = m.table(entry, "channels", f"{where}.channels", required=True)
     m.keys(raw, tuple(quantities), f"{where}.channels")
     channels = {key: _channel(m, key, value, f"{where}.channels.{key}", quantities) for key, value in raw.items()}
+    if TRACK & set(channels):
+        channels = _velocity_from_track(m, f"{where}.channels", channels)
     return LoggerSpec(name, path, column, unit, factor, clock, None if offset == "auto" else offset, hint, search,
                       skip, delimiter, channels)
+
+
+TRACK = {"ground_speed", "course"}
+
+
+def _velocity_from_track(m, where, channels):
+    """A receiver that logs its track (ground speed, course over ground, vertical speed: ArduPilot's GPS Spd,
+    GCrs and VZ with sign = -1, NMEA's speed and course with a climb rate) gives the velocity: its three
+    channels become one ``velocity`` channel (north = s·cos c, east = s·sin c, down = −v_up)."""
+    parts = ("ground_speed", "course", "vertical_speed")
+    missing = [p for p in parts if p not in channels]
+    if missing:
+        m.fail(f"{where}.{missing[0]}", "is missing: ground_speed and course give the velocity with the "
+               "vertical speed of the same logger", f"add {missing[0]} = {{ column = \"...\", unit = \"...\" }} "
+               "to this logger (vertical_speed positive up: sign = -1 for a column positive down), or map velocity "
+               "= { columns = [north, east, down] } instead")
+    if "velocity" in channels:
+        m.fail(f"{where}.velocity", "the velocity is mapped twice: as velocity and as ground_speed, course and "
+               "vertical_speed", "keep one of the two")
+    specs = tuple(channels.pop(p) for p in parts)
+    channels["velocity"] = ChannelSpec("velocity", tuple(s.columns[0] for s in specs),
+                                       ", ".join(f"{p} {s.unit}" + (" sign -1" if s.sign < 0 else "")
+                                                 for p, s in zip(parts, specs)), 1.0, 1.0, "speed",
+                                       parts=specs)
+    return channels
 
 
 def _clock_offset(m, entry, key, where):

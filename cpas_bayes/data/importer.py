@@ -256,6 +256,11 @@ def read_logger(spec) -> LoggerRecord:
                    "sort the rows by time and remove repeated samples")
     channels = {}
     for ch in spec.channels.values():
+        if ch.parts:   # a track: ground speed, course (deg), vertical speed up → north, east, down
+            speed, course, up = (_numbers(spec, frame, p.columns[0]) * p.factor * p.sign for p in ch.parts)
+            channels[ch.name] = np.column_stack([speed * np.cos(np.radians(course)),
+                                                 speed * np.sin(np.radians(course)), -up])
+            continue
         columns = [_numbers(spec, frame, c) * ch.factor * ch.sign for c in ch.columns]
         channels[ch.name] = columns[0] if len(columns) == 1 else np.stack(columns, axis=1)
     return LoggerRecord(spec, t, channels)
