@@ -324,3 +324,21 @@ def test_unknown_cluster_form_is_refused(examples):
     test, _, _ = examples["drogue-clean"]
     with pytest.raises(ValueError, match="cluster must be one of"):
         prepare_model(test, reduce_test(test), cluster="summed")
+
+
+@pytest.mark.parametrize("name, cells", [("main-clean", True), ("drogue-clean", False)])
+def test_fused_whitened_residuals_equal_whitening_the_residuals(examples, name, cells):
+    """The compiled whitened residuals (the discrepancy's every call) are :meth:`whiten` of the residuals over
+    their multipliers, and their squares sum per bin to the likelihood's quadratic form; also without load
+    cells (one channel)."""
+    test, model, truth = examples[name]
+    if not cells:
+        model = _with_chutes(test, chutes={i: {"load_cell": None} for i in range(len(test.parachutes))})
+    theta = _rows_near_first_guess(model, np.random.default_rng(12), n=5)
+    pred, obs = model.predict(theta), model.obs
+    z, _ = model.whitened_residuals(theta, pred)
+    r = np.concatenate([((obs.acc[None] - pred.acc) / pred.noise_acc[:, None])[:, None],
+                        (obs.lc[None] - pred.lc) / pred.noise_lc[:, None, None]], axis=1)
+    np.testing.assert_allclose(z, model.whiten(r), rtol=1e-12, atol=1e-12 * np.abs(z).max())
+    quad, _, _ = model._quadratic_form(theta, pred)
+    np.testing.assert_allclose((z**2).sum(axis=1), quad, rtol=1e-10)

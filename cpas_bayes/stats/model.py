@@ -69,6 +69,7 @@ from cpas_bayes.data.bundle import FlightTest
 from cpas_bayes.physics.inflation import below_previous_code, cluster_drag_area, decay_code, stage_role, stage_tag
 from cpas_bayes.stats.cluster_form import chute_prefixes, stage_exchanges, start_prior
 from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
+from cpas_bayes.stats.likelihood_kernel import whitened_residuals as fused_whitened_residuals
 from cpas_bayes.stats.observations import Observations
 from cpas_bayes.stats.distributions import TruncNormal
 from cpas_bayes.stats.model_parts import Context, Extension, Parameter, Prediction
@@ -76,6 +77,12 @@ from cpas_bayes.stats.priors import KindPriors, NuisancePriors, PriorSet
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _STAGE_FIELDS = ("start", "n_p", "expopen", "ck", "tk", "eps")
+
+
+def _rows(values, noise):
+    """A prediction's channel (B, ...) and its multiplier per row (B,), contiguous, for a compiled kernel."""
+    values = np.ascontiguousarray(values, float)
+    return values, np.ascontiguousarray(np.broadcast_to(np.asarray(noise, float), values.shape[:1]))
 
 
 def diameter_prior(nominal, sigma):
@@ -116,6 +123,13 @@ class TestModel:
         self._a_lc = obs.lc_qbar * self._w_lc
         self._denom = 1.0 + obs.acc_qbar * self._a_acc + (obs.lc_qbar * self._a_lc).sum(axis=0)
         self._inv_denom = 1.0 / self._denom
+        # the per-bin whitening (I − c·vvᵀ)·D^(−½) of :meth:`whiten`, once
+        self._white_scale = np.concatenate([np.sqrt(self._w_acc)[None], np.sqrt(self._w_lc)])
+        self._white_v = np.concatenate([(obs.acc_qbar * np.sqrt(self._w_acc))[None],
+                                        obs.lc_qbar * np.sqrt(self._w_lc)])
+        v2 = self._denom - 1.0
+        self._white_c = np.where(v2 > 1e-12, (1.0 - 1.0 / np.sqrt(self._denom)) / np.where(v2 > 1e-12, v2, 1.0),
+                                 0.5)
         n_channels = 1 + obs.lc.shape[0]
         # Parameter-free part of log N per bin: −½·log det(D + uuᵀ) − ½·C·log 2π.
         self._ll_const = -0.5 * (np.log(obs.acc_sigma**2) + np.log(obs.lc_sigma**2).sum(axis=0)
@@ -429,12 +443,8 @@ class TestModel:
         (I + vvᵀ)^(−½) = I − c·vvᵀ, c = (1 − 1/√(1 + |v|²))/|v|², so
         z = (I − c·vvᵀ)·D^(−½)·y and zᵀz is the quadratic form of the likelihood.
         """
-        obs = self.obs
-        scale = np.concatenate([np.sqrt(self._w_acc)[None], np.sqrt(self._w_lc)])
-        y = np.asarray(y, float) * scale
-        v = np.concatenate([(obs.acc_qbar * np.sqrt(self._w_acc))[None], obs.lc_qbar * np.sqrt(self._w_lc)])
-        v2 = self._denom - 1.0
-        c = np.where(v2 > 1e-12, (1.0 - 1.0 / np.sqrt(self._denom)) / np.where(v2 > 1e-12, v2, 1.0), 0.5)
+        y = np.asarray(y, float) * self._white_scale
+        v, c = self._white_v, self._white_c
         return y - c * v * (v * y).sum(axis=-2, keepdims=True)
 
     def whitened_residuals(self, theta, pred):
@@ -444,9 +454,9 @@ class TestModel:
         multiplier. Also returns log det Σ per bin (B, N) (with the multipliers).
         """
         obs = self.obs
-        r_acc = (obs.acc[None, :] - pred.acc) / pred.noise_acc[:, None]
-        r_lc = (obs.lc[None] - pred.lc) / pred.noise_lc[:, None, None]
-        z = self.whiten(np.concatenate([r_acc[:, None, :], r_lc], axis=1))
+        z = fused_whitened_residuals(obs.acc, *_rows(pred.acc, pred.noise_acc), obs.lc,
+                                     *_rows(pred.lc, pred.noise_lc), self._white_scale, self._white_v,
+                                     self._white_c)
         log_det = -2.0 * (self._ll_const + 0.5 * (1 + obs.lc.shape[0]) * _LOG_2PI) \
             + 2.0 * self._log_multipliers(pred)[:, None]
         return z, log_det
