@@ -184,3 +184,20 @@ def test_a_record_reaching_above_the_standard_atmosphere_is_reduced_not_crashed(
     high = air.logger_channels(_with(test, altitude=test.data["altitude"] + 80_000.0))
     assert high.density_altitude.max() <= air.TOP_GEOPOTENTIAL_ALTITUDE
     assert np.all(np.isfinite(high.density_table))
+
+
+@pytest.mark.parametrize("limit, value, place", [("MAX_READINGS", 300, "column 'G'"),
+                                                 ("MAX_RECEIVER_SAMPLES", 50, "column(s) 'v_north, v_east, v_up'")])
+def test_a_record_the_error_model_cannot_hold_is_refused_before_any_work(monkeypatch, limit, value, place):
+    """The error model's dense matrices grow as receiver samples × readings (a 1 kHz receiver over 30 s asked
+    for 104 GiB and ended in a MemoryError): beyond the limits the record is refused, naming the channel and
+    the fix. The 20 Hz drop (400 readings, 200 receiver samples) is refused under limits set below it."""
+    from cpas_bayes.core.errors import BundleError
+
+    test, _ = synthesize_logger("logger-drop", 1)
+    air.logger_channels(test)
+    monkeypatch.setattr(air, limit, value)
+    with pytest.raises(BundleError) as err:
+        air.logger_channels(test)
+    assert err.value.where == place and f"more than the {value:,}" in err.value.problem, str(err.value)
+    assert "cut the record to the parachute phase" in err.value.fix

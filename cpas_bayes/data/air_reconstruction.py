@@ -153,6 +153,7 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     h_sigma = d["altitude_sigma"].to_numpy(float)[h_rows]
     lags = bool(np.array_equal(h_rows, rows))
     h_keep = (t_h >= t_a[0]) & (t_h - (lo if lags else 0.0) <= t_a[-1])
+    _check_sizes(csv, t_a, int(keep.sum()), int(h_keep.sum()))
     wind = spec.wind if spec is not None else None
     if wind is not None:
         w_alt, w_n, w_e, w_sigma = wind.altitude, wind.north, wind.east, float(wind.sigma)
@@ -196,6 +197,33 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         wind_altitude=np.asarray(w_alt, float), wind_north=np.asarray(w_n, float),
         wind_east=np.asarray(w_e, float), wind_sigma=w_sigma, first_velocity_time=float(t_v[0]),
         first_velocity=vel[0], density_altitude=alt, density_table=table, held_before=bool((~after).any()))
+
+
+# The error model holds dense matrices of the receiver's samples (3 per velocity, 1 per altitude) and the
+# model's bins by the readings, and sweeps the readings once per reading (error_sensitivity): its memory grows
+# as samples × readings and its time as readings². Beyond these a reconstruction needs gigabytes (a 1 kHz
+# receiver over 30 s asked for 104 GiB) or minutes; a drop's inflation needs neither.
+MAX_READINGS = 12_000            # 200 Hz for a minute, 400 Hz for 30 s
+MAX_RECEIVER_SAMPLES = 1_500     # of the velocity and of the altitude: 10 Hz for 2½ minutes, 50 Hz for 30 s
+
+
+def _check_sizes(csv, t_a, n_velocity, n_altitude):
+    """Refuse a record the error model cannot hold (see MAX_READINGS), naming the channel and the fix."""
+    span = float(t_a[-1] - t_a[0])
+    if t_a.size > MAX_READINGS:
+        rate = t_a.size / max(span, 1e-9)
+        raise BundleError(csv, "column 'G'", f"{t_a.size:,} accelerometer readings after release ({span:.1f} s at "
+                          f"{rate:.0f} Hz), more than the {MAX_READINGS:,} a logger bundle's air-data error model "
+                          "holds (its memory grows as readings × receiver samples, its time as readings²)",
+                          f"cut the record to the parachute phase (at most {MAX_READINGS / rate:.0f} s at this "
+                          "rate; [record] end in an import map) or average the accelerometer to a lower rate")
+    for n, column in ((n_velocity, "v_north, v_east, v_up"), (n_altitude, "altitude")):
+        if n > MAX_RECEIVER_SAMPLES:
+            raise BundleError(csv, f"column(s) '{column}'", f"{n:,} receiver samples in the record, more than the "
+                              f"{MAX_RECEIVER_SAMPLES:,} a logger bundle's air-data error model holds (a dense "
+                              "matrix of them by the readings)", "average or decimate the receiver's samples to "
+                              f"at most {MAX_RECEIVER_SAMPLES:,} ({MAX_RECEIVER_SAMPLES / max(span, 1e-9):.0f} Hz "
+                              "over this record), or cut the record to the parachute phase")
 
 
 def air_priors(ch: LoggerChannels) -> dict:
