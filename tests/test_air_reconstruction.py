@@ -201,3 +201,20 @@ def test_a_record_the_error_model_cannot_hold_is_refused_before_any_work(monkeyp
         air.logger_channels(test)
     assert err.value.where == place and f"more than the {value:,}" in err.value.problem, str(err.value)
     assert "cut the record to the parachute phase" in err.value.fix
+
+
+def test_an_atmosphere_profile_off_by_a_unit_is_refused_as_a_density_column_is():
+    """[atmosphere] densities in slug/ft³ read as kg/m³ (0.0024 at sea level): q̄ 0.7 Pa and a 20,918 m² drag
+    area came out with no word (found by a fuzzing pass); now refused as a density column is, by its ratio to
+    the standard atmosphere; a real sounding (±20 %) passes."""
+    from cpas_bayes.core.errors import BundleError
+    from cpas_bayes.data.air_data import DensityProfile
+    from cpas_bayes.physics.atmosphere import standard_density
+
+    test, _ = synthesize_logger("logger-drop", 1)
+    h = np.array([0.0, 3000.0, 6000.0])
+    with_profile = lambda rho: replace(test, air_data=replace(test.air_data, atmosphere=DensityProfile(h, rho)))  # noqa: E731
+    air.logger_channels(with_profile(1.15 * standard_density(h)))
+    with pytest.raises(BundleError) as err:
+        air.logger_channels(with_profile(standard_density(h) / 515.379))
+    assert err.value.where == "key 'atmosphere.density'" and "0.00194× the standard" in err.value.problem

@@ -578,6 +578,13 @@ def test_gnss_velocity_makes_a_logger_bundle_whose_qbar_beats_the_ground_speeds(
      "key 'air_data': applies to a map whose air data come from GNSS velocity"),
     (lambda d: d["test"].update(wind={"altitude": [0.0], "north": [0.0], "east": [8.0], "sigma": -1.0}),
      "key 'test.wind.sigma'"),
+    # what a logger bundle would silently ignore, and a zero sigma said at the map's key (not data.csv's)
+    (lambda d: d["logger"]["gnss"]["channels"].update(gamma={"column": "vn", "unit": "deg"}),
+     "key 'logger.gnss.channels.gamma': a logger bundle does not use gamma"),
+    (lambda d: d["test"]["sigma"].update(v_north=0.0), "key 'test.sigma.v_north': a 1-sigma of 0 claims an exact"),
+    (lambda d: d["logger"]["gnss"]["channels"]["velocity"].update(sign=-1),
+     "velocity's three are north, east, down. Fix: remove sign; a receiver logging up rather than down: map its "
+     "track"),
 ])
 def test_logger_bundle_maps_are_refused_naming_the_key(tmp_path, sim, capsys, monkeypatch, edit, expected):
     write_loggers(tmp_path, sim)
@@ -658,3 +665,24 @@ def test_a_track_missing_a_part_or_given_twice_is_refused(tmp_path, sim, capsys,
     doc["logger"]["gnss"]["channels"] = channels
     err = _refused(capsys, tmp_path, doc)
     assert expected in err, err
+
+
+def test_a_receiver_switched_on_late_leaves_blank_cells_not_a_shorter_record(tmp_path, windy, capsys):
+    """A logger bundle keeps the receiver's samples where they are: a receiver whose file starts 5 s after
+    release no longer clips the record (it was then refused over the stage start, which the clipped record
+    no longer held); the reduction still reads the clean snatch peak."""
+    from cpas_bayes.data.reduction import reduce_test
+
+    gnss = _windy_loggers(tmp_path, windy)
+    rows = pd.read_csv(tmp_path / "gnss.csv")
+    late = rows[rows["time"] > 137.25 + WINDY.release + 5.0]      # its clock: true time + 137.25 s
+    late.to_csv(tmp_path / "gnss.csv", index=False, float_format="%.4f")
+    doc = map_document(air_data=None, gnss=gnss)
+    doc["test"]["sigma"] = dict(LOGGER_SIGMA)
+    code, _, err = run(capsys, "import", write_map(tmp_path, doc), "--out", tmp_path / "late")
+    assert code == 0, err
+    test = read_bundle(tmp_path / "late")
+    v = np.isfinite(test.data["v_north"].to_numpy())
+    assert test.time[0] == pytest.approx(-0.5, abs=0.006) and test.time[v][0] > 4.0
+    peak = max(p.accelerometer.load for p in reduce_test(test).peaks)
+    assert peak == pytest.approx(WINDY.snatch_g * WINDY.mass * G0, rel=0.05)

@@ -57,7 +57,7 @@ import pandas as pd
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.data.air_data import LATENCY_PRIOR, VELOCITY_COLUMNS, WIND_SIGMA_WITHOUT_PROFILE, channel_samples, \
     sample_interval
-from cpas_bayes.data.bundle import CSV_NAME, FlightTest, with_data
+from cpas_bayes.data.bundle import CSV_NAME, TOML_NAME, FlightTest, with_data
 from cpas_bayes.data.logger_events import EventNotFound, detect_release
 from cpas_bayes.physics import flight_path as fp
 from cpas_bayes.physics.atmosphere import TOP_GEOPOTENTIAL_ALTITUDE, standard_density
@@ -186,7 +186,15 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         order = np.argsort(h_d)
         table = np.exp(np.interp(alt, h_d[order], np.log(rho_d[order])))
     elif spec is not None and spec.atmosphere is not None:
-        table = spec.atmosphere(alt)
+        profile = spec.atmosphere
+        ratio = float(np.median(profile.density / standard_density(np.clip(profile.altitude, ATMOSPHERE_FLOOR,
+                                                                           TOP_GEOPOTENTIAL_ALTITUDE))))
+        if not 1 / 3 <= ratio <= 3:   # as for a density column: weather moves it by ±20 %, a unit slip by far more
+            toml = test.source / TOML_NAME if test.source else test.label
+            raise BundleError(toml, "key 'atmosphere.density'", f"the profile's density is {ratio:.3g}× the "
+                              "standard atmosphere's at its altitudes", "check its unit (the bundle's: kg/m³ in an "
+                              "SI bundle, slug/ft³ in a US one) and the altitudes'")
+        table = profile(alt)
     else:
         table = standard_density(alt)
     return LoggerChannels(

@@ -269,6 +269,10 @@ def _channel(m, name, entry, where, quantities):
     if sign not in (1, -1) or isinstance(sign, bool):
         m.fail(f"{where}.sign", f"must be 1 or -1, got {shown(sign)}", "write sign = -1 to reverse an axis")
     if sign != 1 and len(columns) != 1:
+        if name == "velocity":
+            m.fail(f"{where}.sign", "a sign applies to one column; velocity's three are north, east, down",
+                   "remove sign; a receiver logging up rather than down: map its track (ground_speed, course and "
+                   "vertical_speed, which takes a sign) or negate the column in the file")
         m.fail(f"{where}.sign", "a sign applies to one column (three axes give a magnitude)", "remove sign")
     return ChannelSpec(name, columns, entry["unit"], factor, float(sign), quantity)
 
@@ -479,6 +483,12 @@ def _check_channels(m, loggers, test_doc, prefix, meta, mode):
         m.fail("logger", "no logger has an accel channel: G, the release and the line stretch come from it",
                "add accel = { column = \"...\", unit = \"m/s^2\" } (or columns = [x, y, z]) to a logger's channels")
     if mode == "reconstruct":   # a logger bundle: the receiver's velocity and an altitude, at their own samples
+        unused = [(lg.name, n) for lg in loggers for n in lg.channels if n in ("gamma", "vertical_speed")]
+        if unused:
+            name, channel = unused[0]
+            m.fail(f"logger.{name}.channels.{channel}", f"a logger bundle does not use {channel}: the package "
+                   "reconstructs the flight path from G and the receiver's velocity", f"remove {channel}, or write "
+                   "air_data = \"ground_speed\" for a bundle with q̄ from the ground speed (which reads it)")
         needs = [("altitude", has("altitude"), "an altitude channel (GNSS or barometric), which a logger bundle "
                   "needs for the density and the wind")]
     else:
@@ -517,6 +527,9 @@ def _check_channels(m, loggers, test_doc, prefix, meta, mode):
         if key not in sigma:
             m.fail(f"{prefix}sigma.{key}", f"is missing: the bundle needs a 1-sigma of {key} and the loggers give none",
                    f"add {key} = <1-sigma, {unit}> under [{prefix}sigma] ({example})")
+        if sigma[key] == 0 and not isinstance(sigma[key], bool):   # the bundle refuses it; say so at the map's key
+            m.fail(f"{prefix}sigma.{key}", f"a 1-sigma of 0 claims an exact {key} (no sensor is), and each sample is "
+                   "weighed by 1/sigma", f"give the sensor's 1-sigma, {unit} ({example})")
 
 
 def read_import_map(path, folder) -> ImportMap:

@@ -361,8 +361,14 @@ def _events(import_map, record, t):
 # the bundle
 
 
+# Channels a logger bundle keeps at their own logger's samples (blank elsewhere): their loggers do not bound
+# the record, so a receiver switched on late leaves blank cells rather than a shorter record.
+OWN_SAMPLES = ("velocity", "altitude")
+
+
 def _feeds_bundle(spec, import_map):
-    return spec.name == import_map.g_logger or any(name != "accel" for name in spec.channels)
+    own = OWN_SAMPLES if import_map.air_data == "reconstruct" else ()
+    return spec.name == import_map.g_logger or any(n not in ("accel",) + own for n in spec.channels)
 
 
 def _rows(import_map, records, offsets, release):
