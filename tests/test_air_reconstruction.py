@@ -218,3 +218,22 @@ def test_an_atmosphere_profile_off_by_a_unit_is_refused_as_a_density_column_is()
     with pytest.raises(BundleError) as err:
         air.logger_channels(with_profile(standard_density(h) / 515.379))
     assert err.value.where == "key 'atmosphere.density'" and "0.00194× the standard" in err.value.problem
+
+
+def test_air_data_csv_is_in_the_bundles_units(tmp_path):
+    """A US logger bundle's air_data.csv holds ft/s, ft, slug/ft³ and psf, as its reduced.csv holds lbf and
+    ft² (it was SI with nothing saying so, found by a fuzzing pass); γ in degrees either way."""
+    import pandas as pd
+
+    from cpas_bayes.core.units import unit_system
+    from cpas_bayes.data.reduction import reduce_test
+    from cpas_bayes.outputs.reduction import write_reduction
+
+    test, _ = synthesize_logger("logger-drop", 1)
+    red = reduce_test(replace(test, units=unit_system("US")))
+    written = pd.read_csv(write_reduction(red, tmp_path / "red")["air_csv"])
+    si = red.air_estimate.frame
+    np.testing.assert_allclose(written["qbar"], si["qbar"] / 47.88025898, rtol=1e-8)
+    np.testing.assert_allclose(written["airspeed"], si["airspeed"] / 0.3048, rtol=1e-8)
+    np.testing.assert_allclose(written["altitude"], si["altitude"] / 0.3048, rtol=1e-8)
+    np.testing.assert_allclose(written["gamma"], si["gamma"], rtol=1e-8)
