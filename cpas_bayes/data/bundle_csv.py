@@ -1,4 +1,5 @@
-"""Reading a bundle's data.csv within stated limits: size, header, row shape, numeric cells.
+"""Reading a bundle's data.csv within stated limits: size, header, row shape, numeric cells; and passing a
+CSV file's leading lines without reading them whole (:func:`skip_lines`, for an import map's ``skip_rows``).
 
 The file's size and row count are checked before it is parsed, the header
 before any row, and every row's cell count against the header's (a trailing
@@ -10,6 +11,7 @@ column is used, so a bad cell is reported by its row and column.
 from __future__ import annotations
 
 import io
+import re
 
 import numpy as np
 import pandas as pd
@@ -191,3 +193,34 @@ def sigma_column(frame, column, sigma_table, path):
     if column in sigma_table:
         return np.full(len(frame), float(sigma_table[column]))
     return None
+
+
+_LINE_END = re.compile(rb"\r\n|\r|\n")   # pandas' C parser ends a line at any of them
+_CHUNK = 1 << 20
+
+
+def skip_lines(handle, n):
+    """Pass ``n`` lines of a binary file from its start: (byte offset after them, lines passed).
+
+    Streams 1 MB at a time, so memory does not grow with the file or with ``n``; fewer than ``n`` lines
+    passed means the file ended first. The handle's position is left undefined: seek to the offset.
+    """
+    offset = seen = 0
+    carry = b""
+    handle.seek(0)
+    while seen < n:
+        data = handle.read(_CHUNK)
+        chunk, carry = carry + data, b""
+        if not chunk:
+            break
+        if data and chunk.endswith(b"\r"):   # its \n may open the next chunk: one line end, not two
+            chunk, carry = chunk[:-1], b"\r"
+        ends = chunk.count(b"\n") + chunk.count(b"\r") - chunk.count(b"\r\n")
+        if seen + ends < n:
+            seen, offset = seen + ends, offset + len(chunk)
+            continue
+        for match in _LINE_END.finditer(chunk):
+            seen += 1
+            if seen == n:
+                return offset + match.end(), seen
+    return offset, seen

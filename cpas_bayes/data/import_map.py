@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import copy
 import math
-import re
 from dataclasses import dataclass, replace
 from pathlib import Path, PurePath
 
@@ -23,6 +22,7 @@ from cpas_bayes.core.errors import BundleError, InputError
 from cpas_bayes.core.inputs import check_keys, check_name, nearest, read_toml, shown
 from cpas_bayes.core.units import column_factor
 from cpas_bayes.data.bundle import parse_test_document
+from cpas_bayes.data.bundle_csv import skip_lines
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION, MAX_START_SIGMA
 
 MAP_KEYS = ("reference", "template", "air_data", "record", "events", "logger", "test")
@@ -64,35 +64,6 @@ _UNIT_EXAMPLES = {"acceleration": "'m/s^2', 'ft/s^2' or 'g'", "speed": "'m/s', '
 # counts from power-on, so an offset reaches ~1.7e9 s today; a day would refuse that. Beyond 1e10 s (317 years)
 # it is a typo or a unit error, and would overflow the record's arithmetic into meaningless numbers.
 MAX_CLOCK_OFFSET = 1e10
-_LINE_END = re.compile(rb"\r\n|\r|\n")   # pandas' C parser ends a line at any of them
-_CHUNK = 1 << 20
-
-
-def skip_lines(handle, n):
-    """Pass ``n`` lines of a binary file from its start: (byte offset after them, lines passed).
-
-    Streams 1 MB at a time, so memory does not grow with the file or with ``n``; fewer than ``n`` lines
-    passed means the file ended first. The handle's position is left undefined: seek to the offset.
-    """
-    offset = seen = 0
-    carry = b""
-    handle.seek(0)
-    while seen < n:
-        data = handle.read(_CHUNK)
-        chunk, carry = carry + data, b""
-        if not chunk:
-            break
-        if data and chunk.endswith(b"\r"):   # its \n may open the next chunk: one line end, not two
-            chunk, carry = chunk[:-1], b"\r"
-        ends = chunk.count(b"\n") + chunk.count(b"\r") - chunk.count(b"\r\n")
-        if seen + ends < n:
-            seen, offset = seen + ends, offset + len(chunk)
-            continue
-        for match in _LINE_END.finditer(chunk):
-            seen += 1
-            if seen == n:
-                return offset + match.end(), seen
-    return offset, seen
 
 
 @dataclass(frozen=True)

@@ -50,9 +50,9 @@ from cpas_bayes.core.inputs import did_you_mean, shown
 from cpas_bayes.core.units import STANDARD_GRAVITY
 from cpas_bayes.data.air_data import VELOCITY_COLUMNS
 from cpas_bayes.data.bundle import FlightTest, read_bundle
-from cpas_bayes.data.bundle_csv import parse_numbers
+from cpas_bayes.data.bundle_csv import parse_numbers, skip_lines
 from cpas_bayes.data.bundle_write import write_bundle
-from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map, skip_lines
+from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
 from cpas_bayes.data.reduction import check_reducible
 from cpas_bayes.data.logger_events import (Event, EventNotFound, align_clocks, detect_line_stretch, detect_release,
