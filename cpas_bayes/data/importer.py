@@ -50,6 +50,7 @@ from cpas_bayes.core.inputs import did_you_mean, shown
 from cpas_bayes.core.units import STANDARD_GRAVITY
 from cpas_bayes.data.air_data import VELOCITY_COLUMNS
 from cpas_bayes.data.bundle import FlightTest, read_bundle
+from cpas_bayes.data.bundle_air import accelerometer_magnitude
 from cpas_bayes.data.bundle_csv import parse_numbers, skip_lines
 from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
@@ -271,17 +272,15 @@ def read_logger(spec) -> LoggerRecord:
 
 
 def load_factor(accel, sigma=None):
-    """Sensed load factor, g: |a|/g0 for three axes, a/g0 for one signed axis (a in m/s²).
-
-    With ``sigma`` (each axis' 1-sigma, g) three axes give the magnitude less its noise bias, as the bundle
-    reader does (:func:`cpas_bayes.data.bundle_air.accelerometer_magnitude`): √max(|a|² − 2σ², 0), the noise
-    across the force taken out. The events are found on the plain magnitude."""
+    """Sensed load factor, g: |a|/g0 for three axes, a/g0 for one signed axis (a in m/s²). With ``sigma`` (each
+    axis' 1-sigma, g) three axes give the magnitude less its noise bias, the bundle reader's own (:func:`cpas_bayes.
+    data.bundle_air.accelerometer_magnitude`). The events are found on the plain magnitude."""
     accel = np.asarray(accel, float) / STANDARD_GRAVITY
     if accel.ndim == 1:
         return accel
     if sigma is None:
         return np.linalg.norm(accel, axis=1)
-    return np.sqrt(np.maximum(np.sum(accel**2, axis=1) - 2.0 * float(sigma) ** 2, 0.0))
+    return accelerometer_magnitude(accel, np.full(accel.shape, float(sigma)), np.ones(len(accel), bool))["G"]
 
 
 def shared_signal(record):
