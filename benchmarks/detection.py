@@ -2,7 +2,7 @@
 
     python benchmarks/detection.py [--out benchmarks/detection.csv] [--study clean,ooc,pairs,power]
                                    [--seeds 20] [--mode full|screen] [--scenarios drogue,main]
-                                   [--effects a,b]
+                                   [--effects a,b] [--sizes 0.4,0.06]
 
 Each case is a synthetic test (:mod:`cpas_bayes.data.synth`) with a known
 hidden effect, diagnosed with the default rule; one row per case goes into
@@ -111,8 +111,9 @@ def run(args):
         with out.open("w", newline="") as f:
             csv.DictWriter(f, FIELDS).writeheader()
     effects = set(args.effects.split(",")) if args.effects else None
+    sizes = {float(x) for x in filter(None, args.sizes.split(","))} or None
     todo = [c for c in cases(args.study.split(","), args.seeds, args.scenarios.split(","))
-            if effects is None or c[2] in effects]
+            if (effects is None or c[2] in effects) and (sizes is None or c[3] is None or c[3] in sizes)]
     todo = [c for c in todo
             if (c[0], c[1], c[2], "" if c[3] is None else str(c[3]), str(c[4]), args.mode) not in done]
     print(f"{len(todo)} cases to run ({len(done)} already in {out})", flush=True)
@@ -166,6 +167,8 @@ def main(argv=None):
     parser.add_argument("--seeds", type=int, default=20, help="cases per study cell")
     parser.add_argument("--scenarios", default="drogue,main")
     parser.add_argument("--effects", default="", help="only these hidden effects (comma-separated; default all)")
+    parser.add_argument("--sizes", default="",
+                        help="power study: only these sizes (comma-separated; default every size of POWER_SIZES)")
     parser.add_argument("--mode", default="full", choices=("screen", "full"),
                         help="full is what `cpas-bayes diagnose` runs; screen is the campaign's default")
     parser.add_argument("--workers", type=int, default=2)
@@ -177,6 +180,10 @@ def main(argv=None):
     unknown = set(filter(None, args.effects.split(","))) - set(known)
     if unknown:
         parser.error(f"unknown effect {sorted(unknown)[0]!r}; use any of {', '.join(known)}")
+    try:
+        {float(x) for x in filter(None, args.sizes.split(","))}
+    except ValueError:
+        parser.error(f"--sizes {args.sizes!r}: give numbers separated by commas, as 0.4,0.06")
     run(args)
 
 
