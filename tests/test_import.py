@@ -479,9 +479,11 @@ def test_a_bundle_read_bundle_would_refuse_is_not_written(tmp_path, sim, capsys)
     write_loggers(tmp_path, sim)
     doc = map_document()
     doc["test"]["parachute"][0]["stage"][0]["delay"] = 100.0
-    err = _refused(capsys, tmp_path, doc)
+    code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", tmp_path / "bundle")
+    assert code == 2 and "Fix:" in err and "Traceback" not in err
     assert "map.toml" in err and "would be refused" in err and "stage[0].start" in err
     assert "after the record ends" in err
+    assert printed == ""     # no detections reported for a bundle that was not written
     assert sorted(p.name for p in tmp_path.iterdir()) == ["gnss.csv", "imu.csv", "map.toml"]
 
 

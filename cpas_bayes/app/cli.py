@@ -580,9 +580,9 @@ def import_command(map_path, out):
 
     import_map = read_import_map(map_path, out)  # the whole map, and that every file exists, before any reading
     result = import_loggers(import_map, out)
+    folder = write_import(result, out)   # a bundle refused on read-back prints only the refusal
     for line in describe(result):
         click.echo(f"  {line}")
-    folder = write_import(result, out)
     test = result.test
     click.echo(f"wrote {folder}: {test.name}, {len(test.data):,} rows, {test.time[0]:.3f} … {test.time[-1]:.3f} s "
                f"after release at {test.sample_rate:.1f} Hz, channels {', '.join(test.channels)}")
