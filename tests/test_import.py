@@ -650,6 +650,47 @@ def test_a_receiver_that_logs_its_track_gives_the_same_velocity(tmp_path, windy,
         np.testing.assert_allclose(b[c], a[c], atol=1e-4, equal_nan=True, err_msg=c)
 
 
+def test_a_height_above_ground_with_its_site_elevation_gives_the_sea_level_altitude(tmp_path, windy, capsys):
+    """A barometer logging feet above a drop zone at 1,340 m: with ground = 4396.33 ft the bundle's altitude is
+    the same as the receiver's sea-level one (to the CSV's rounding); without it, import says the height is
+    taken as above sea level and how to say otherwise (read as sea level, q̄ would be ~13 % high)."""
+    gnss = _windy_loggers(tmp_path, windy)
+    doc = map_document(air_data=None, gnss=gnss)
+    doc["test"]["sigma"] = dict(LOGGER_SIGMA)
+    code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", tmp_path / "msl")
+    assert code == 0, err
+    assert "altitude <- gnss: alt (m), at its own samples, taken as above sea level (a height above ground: " \
+           "give altitude's ground = the site's elevation)" in printed
+    rows = pd.read_csv(tmp_path / "gnss.csv")
+    ft, site = 0.3048, 1340.0
+    _csv(tmp_path / "agl.csv", ["time", "vn", "ve", "vd", "h_agl"],
+         [rows["time"], rows["vn"], rows["ve"], rows["vd"], (rows["alt"] - site) / ft], ["%.4f"] * 4 + ["%.6f"])
+    agl = dict(gnss, file="agl.csv", channels={"velocity": gnss["channels"]["velocity"],
+                                               "altitude": {"column": "h_agl", "unit": "ft", "ground": site / ft}})
+    doc = map_document(air_data=None, gnss=agl)
+    doc["test"]["sigma"] = dict(LOGGER_SIGMA)
+    code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", tmp_path / "agl")
+    assert code == 0, err
+    assert "altitude <- gnss: h_agl (ft), at its own samples, above ground at 1340.0 m above sea level" in printed
+    a, b = read_bundle(tmp_path / "msl").data, read_bundle(tmp_path / "agl").data
+    np.testing.assert_allclose(b["altitude"], a["altitude"], atol=1e-4, equal_nan=True)
+
+
+@pytest.mark.parametrize("channel, ground, expected", [
+    ("altitude", 9000.0, "key 'logger.gnss.channels.altitude.ground': 9000.0 m = 9000 m is not a ground elevation"),
+    ("altitude", "high", "key 'logger.gnss.channels.altitude.ground': must be a number (the site's elevation in m)"),
+    ("velocity", 100.0, "key 'logger.gnss.channels.velocity.ground': applies to the altitude channel only"),
+])
+def test_a_bad_ground_elevation_is_refused_naming_the_key(tmp_path, sim, capsys, monkeypatch, channel, ground,
+                                                          expected):
+    write_loggers(tmp_path, sim)
+    doc = map_document(air_data=None)
+    doc["test"]["sigma"] = dict(LOGGER_SIGMA)
+    doc["logger"]["gnss"]["channels"][channel]["ground"] = ground
+    monkeypatch.setattr(pd, "read_csv", None)  # refused before any logger file is parsed
+    assert expected in _refused(capsys, tmp_path, doc)
+
+
 @pytest.mark.parametrize("edit, expected", [
     (lambda ch: ch.pop("vertical_speed"), "key 'logger.gnss.channels.vertical_speed': is missing: ground_speed "
                                           "and course give the velocity"),

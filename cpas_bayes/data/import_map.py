@@ -28,7 +28,7 @@ from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION, MAX_START_SIGMA
 MAP_KEYS = ("reference", "template", "air_data", "record", "events", "logger", "test")
 LOGGER_KEYS = ("file", "time", "clock", "offset", "offset_hint", "search", "skip_rows", "delimiter", "channels")
 TIME_KEYS = ("column", "unit")
-CHANNEL_KEYS = ("column", "columns", "unit", "sign")
+CHANNEL_KEYS = ("column", "columns", "unit", "sign", "ground")
 RECORD_KEYS = ("start", "end")
 EVENT_KEYS = ("release", "release_sigma", "line_stretch", "line_stretch_sigma", "line_stretch_threshold")
 EVENTS = ("release", "line_stretch")
@@ -77,6 +77,7 @@ class ChannelSpec:
     sign: float        # +1 or -1 (one column only)
     quantity: str
     parts: tuple = ()  # a velocity from a track: its ground_speed, course and vertical_speed channels
+    ground: float = 0.0   # m added to an altitude logged above ground: the site's elevation above sea level
 
 
 @dataclass(frozen=True)
@@ -245,7 +246,28 @@ def _channel(m, name, entry, where, quantities):
                    "remove sign; a receiver logging up rather than down: map its track (ground_speed, course and "
                    "vertical_speed, which takes a sign) or negate the column in the file")
         m.fail(f"{where}.sign", "a sign applies to one column (three axes give a magnitude)", "remove sign")
-    return ChannelSpec(name, columns, entry["unit"], factor, float(sign), quantity)
+    return ChannelSpec(name, columns, entry["unit"], factor, float(sign), quantity,
+                       ground=_ground(m, name, entry, factor, where) if "ground" in entry else 0.0)
+
+
+GROUND_RANGE = (-500.0, 6000.0)   # m above sea level: the Dead Sea shore to the highest drop zones with margin
+
+
+def _ground(m, name, entry, factor, where):
+    """The site elevation (m) of an altitude logged above ground: the density is the atmosphere's at sea-level
+    altitude, and a height above a site at 1,300 m read as sea-level altitude makes q̄ 13 % high."""
+    value = entry["ground"]
+    if name != "altitude":
+        m.fail(f"{where}.ground", "applies to the altitude channel only", "remove ground")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        m.fail(f"{where}.ground", f"must be a number (the site's elevation in {entry['unit']}), got {shown(value)}",
+               "write ground = the drop zone's elevation above sea level, in the channel's unit")
+    metres = float(value) * factor
+    if not GROUND_RANGE[0] <= metres <= GROUND_RANGE[1]:
+        m.fail(f"{where}.ground", f"{value} {entry['unit']} = {metres:.0f} m is not a ground elevation on Earth's "
+               f"drop zones ({GROUND_RANGE[0]:.0f} to {GROUND_RANGE[1]:.0f} m)",
+               "write the site's elevation above sea level in the channel's unit")
+    return metres
 
 
 def _logger(m, name, entry, quantities):

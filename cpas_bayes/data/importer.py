@@ -17,14 +17,11 @@ The steps, each refusing bad input with the file, the place and the fix:
    are interpolated (linearly) onto those rows;
 6. derived channels: G = |a|/g0 less its noise bias (three axes) or sign·a/g0
    (one axis). With GNSS velocity and no airspeed or q̄ column (``air_data =
-   "reconstruct"``, the default) the bundle is a logger bundle: the velocity
-   (north, east, up) and the altitude at their loggers' own samples, blank
-   between (:func:`_assemble_logger`), for the package's reconstruction.
-   Otherwise (measured air data, or ``"ground_speed"``): airspeed = |v| from GNSS
-   velocity when no airspeed column is mapped (ground speed: no wind);
-   γ = atan2(−v_down, √(v_n² + v_e²)), or asin(v_up/V); ρ = 1976 standard
-   atmosphere at the (geometric) altitude when no density column is mapped;
-   q̄ = ½ρV² when no q̄ column is mapped;
+   "reconstruct"``, the default) a logger bundle: velocity (north, east, up) and
+   altitude (above sea level: a height above ground plus the map's ``ground``)
+   at their own samples, blank between (:func:`_assemble_logger`). Otherwise:
+   airspeed = |v| (ground speed, no wind) unless mapped; γ = atan2(−v_down,
+   √(v_n² + v_e²)) or asin(v_up/V); ρ = 1976 atmosphere at the altitude; q̄ = ½ρV²;
 7. stage starts linked to an event become numbers in the bundle's time
    (start = event + delay, start_sigma = √(σ_event² + start_sigma²)), and the
    bundle is written to a temporary folder, read back with
@@ -263,7 +260,7 @@ def read_logger(spec) -> LoggerRecord:
                                                  speed * np.sin(np.radians(course)), -up])
             continue
         columns = [_numbers(spec, frame, c) * ch.factor * ch.sign for c in ch.columns]
-        channels[ch.name] = columns[0] if len(columns) == 1 else np.stack(columns, axis=1)
+        channels[ch.name] = columns[0] + ch.ground if len(columns) == 1 else np.stack(columns, axis=1)
     return LoggerRecord(spec, t, channels)
 
 
@@ -412,6 +409,10 @@ def _own_samples(import_map, records, offsets, channel, lo, hi):
 def _source(import_map, channel, how=""):
     spec = import_map.feeder(channel)
     ch = spec.channels[channel]
+    if ch.ground:
+        how += f", above ground at {ch.ground:.1f} m above sea level"
+    elif channel == "altitude" and import_map.feeder("density") is None and import_map.feeder("qbar") is None:
+        how += ", taken as above sea level (a height above ground: give altitude's ground = the site's elevation)"
     return f"{spec.name}: {', '.join(ch.columns)} ({ch.unit}{', sign -1' if ch.sign < 0 else ''}){how}"
 
 
