@@ -487,6 +487,23 @@ def test_a_bundle_read_bundle_would_refuse_is_not_written(tmp_path, sim, capsys)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["gnss.csv", "imu.csv", "map.toml"]
 
 
+def test_a_read_back_refusal_names_the_logger_rows_behind_the_bundle_row(tmp_path, sim, capsys):
+    """A receiver that logged three samples of zero velocity: the ground-speed q̄ is 0 between them, which the
+    bundle refuses at a data.csv row the user never sees; the refusal also says the time after release and each
+    logger's nearest sample as its file's row (the first zero sample, index k, is gnss.csv's row k + 2)."""
+    truth = write_loggers(tmp_path, sim)
+    rows = pd.read_csv(tmp_path / "gnss.csv")
+    k = int(np.searchsorted(rows["time"], truth["release"] - truth["offset"] + 5.0))   # 5 s after release
+    rows.loc[k:k + 2, ["vn", "ve", "vd"]] = 0.0
+    rows.to_csv(tmp_path / "gnss.csv", index=False, float_format="%.4f")
+    doc = map_document()
+    doc["logger"]["gnss"]["offset"] = truth["offset"]
+    doc["logger"]["gnss"].pop("offset_hint")
+    err = _refused(capsys, tmp_path, doc)
+    assert "would be refused: data.csv, row " in err and "column 'qbar'" in err, err
+    assert "s after release; nearest samples: imu.csv row " in err and f", gnss.csv row {k + 2})" in err, err
+
+
 # ---------------------------------------------------------------------------
 # GNSS velocity without airspeed: a logger bundle, whose q̄ the package reconstructs
 
@@ -612,7 +629,7 @@ def test_a_ground_speed_map_may_not_hold_a_wind_table(tmp_path, sim, capsys):
 def test_the_imported_g_of_three_noisy_axes_is_unbiased():
     """0.3 g on three axes with 0.05 g of noise each: |a| reads high by about σ²/|a|; the bundle's G, less the
     noise across the force, within 1e-3 of the truth (the events are still found on the plain magnitude)."""
-    from cpas_bayes.data.importer import load_factor
+    from cpas_bayes.data.import_clocks import load_factor
 
     rng = np.random.default_rng(11)
     axes = (0.3 * np.array([0.0, 0.6, 0.8]) + rng.normal(0.0, 0.05, (200_000, 3))) * G0

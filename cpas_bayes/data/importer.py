@@ -6,7 +6,7 @@ The steps, each refusing bad input with the file, the place and the fix:
    (and that every logger file exists) before any file is read;
 2. :func:`read_logger` reads each logger's time column (s, ms, us… or ISO
    timestamps, as seconds) and the columns of its channels, in SI;
-3. :func:`clock_offsets`: every logger's clock is put on the reference
+3. :func:`~cpas_bayes.data.import_clocks.clock_offsets`: every logger's clock is put on the reference
    logger's, t_ref = t_logger + offset, with the offset given or found by
    cross-correlation (:func:`~cpas_bayes.data.logger_events.align_clocks`);
 4. release and line stretch are found in the sensed load factor of the G
@@ -35,6 +35,7 @@ import csv
 import io
 import json
 import math
+import re
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -44,17 +45,15 @@ import pandas as pd
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import jsonable
 from cpas_bayes.core.inputs import did_you_mean, shown
-from cpas_bayes.core.units import STANDARD_GRAVITY
 from cpas_bayes.data.air_data import VELOCITY_COLUMNS
 from cpas_bayes.data.bundle import FlightTest, read_bundle
-from cpas_bayes.data.bundle_air import accelerometer_magnitude
 from cpas_bayes.data.bundle_csv import parse_numbers, skip_lines
 from cpas_bayes.data.bundle_write import write_bundle
+from cpas_bayes.data.import_clocks import clock_offsets, find_events, load_factor
 from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
 from cpas_bayes.data.reduction import check_reducible
-from cpas_bayes.data.logger_events import (Event, EventNotFound, align_clocks, detect_line_stretch, detect_release,
-                                           from_acceleration, from_velocity, from_vertical_speed, sample_interval)
+from cpas_bayes.data.logger_events import Event, sample_interval
 from cpas_bayes.physics.atmosphere import standard_density
 
 REPORT_NAME = "import.json"
@@ -73,16 +72,6 @@ class LoggerRecord:
     @property
     def rate(self):
         return 1.0 / sample_interval(self.time)
-
-
-@dataclass(frozen=True)
-class ClockOffset:
-    """t_ref = t_logger + offset, s, with its 1-sigma and how it was obtained."""
-
-    offset: float
-    sigma: float
-    method: str            # "reference", "given" or "auto"
-    alignment: object = None  # the Alignment of an "auto" offset
 
 
 @dataclass(frozen=True)
@@ -262,95 +251,6 @@ def read_logger(spec) -> LoggerRecord:
         columns = [_numbers(spec, frame, c) * ch.factor * ch.sign for c in ch.columns]
         channels[ch.name] = columns[0] + ch.ground if len(columns) == 1 else np.stack(columns, axis=1)
     return LoggerRecord(spec, t, channels)
-
-
-# ---------------------------------------------------------------------------
-# clocks and events
-
-
-def load_factor(accel, sigma=None):
-    """Sensed load factor, g: |a|/g0 for three axes, a/g0 for one signed axis (a in m/s²). With ``sigma`` (each
-    axis' 1-sigma, g) three axes give the magnitude less its noise bias, the bundle reader's own (:func:`cpas_bayes.
-    data.bundle_air.accelerometer_magnitude`). The events are found on the plain magnitude."""
-    accel = np.asarray(accel, float) / STANDARD_GRAVITY
-    if accel.ndim == 1:
-        return accel
-    if sigma is None:
-        return np.linalg.norm(accel, axis=1)
-    return accelerometer_magnitude(accel, np.full(accel.shape, float(sigma)), np.ones(len(accel), bool))["G"]
-
-
-def shared_signal(record):
-    """What ``record`` shows of the motion both loggers saw, in g, or None (accel, then velocity, then v_up)."""
-    ch = record.channels
-    if "accel" in ch:
-        return from_acceleration(record.time, load_factor(ch["accel"]))
-    if "velocity" in ch:
-        return from_velocity(record.time, *ch["velocity"].T)
-    if "vertical_speed" in ch:
-        return from_vertical_speed(record.time, ch["vertical_speed"])
-    return None
-
-
-def clock_offsets(import_map, records) -> dict:
-    """Every logger's :class:`ClockOffset` to the reference logger's clock."""
-    ref_name = import_map.reference
-    ref_signal = None
-    offsets = {}
-    for spec in import_map.loggers:
-        where = f"key 'logger.{spec.name}.offset'"
-        if spec.name == ref_name:
-            offsets[spec.name] = ClockOffset(0.0, 0.0, "reference")
-            continue
-        if spec.offset is not None:
-            offsets[spec.name] = ClockOffset(spec.offset, 0.0, "given")
-            continue
-        ref_signal = ref_signal or shared_signal(records[ref_name])
-        signal = shared_signal(records[spec.name])
-        for name, sig in ((ref_name, ref_signal), (spec.name, signal)):
-            if sig is None:
-                raise InputError(import_map.path, where, f"offset = \"auto\" needs a signal both loggers see, and "
-                                 f"logger '{name}' has no accel, velocity or vertical_speed channel",
-                                 f"give logger '{spec.name}' offset = <seconds to add to its time>")
-        hint = spec.hint
-        if hint is None and spec.clock == "wall" and import_map.logger(ref_name).clock == "wall":
-            hint = 0.0  # wall clocks agree to within the search window
-        try:
-            found = align_clocks(ref_signal, signal, hint=hint, search=spec.search)
-        except EventNotFound as exc:
-            raise InputError(import_map.path, where, f"the clock of logger '{spec.name}' could not be aligned to "
-                             f"'{ref_name}': {exc}",
-                             "give offset_hint = <approximate seconds to add to its time> (and search = <seconds>), "
-                             "or offset = <seconds>") from None
-        offsets[spec.name] = ClockOffset(found.offset, found.sigma, "auto", found)
-    return offsets
-
-
-def _events(import_map, record, t):
-    """(release on the reference clock, line stretch after release) of the G logger's record."""
-    g = load_factor(record.channels["accel"])
-    columns = ", ".join(record.spec.channels["accel"].columns)
-    fix = ("check the accel column(s), unit and sign (hanging under the carrier reads +1 g), or give "
-           "[events] {} in the map")
-    if import_map.release is not None:
-        release = Event("release", import_map.release, import_map.release_sigma, math.nan, math.nan, 0.0)
-    else:
-        try:
-            release = detect_release(t, g)
-        except EventNotFound as exc:
-            raise InputError(record.spec.path, f"column(s) {columns}", str(exc),
-                             fix.format("release = <time on the reference clock, s>")) from None
-    if import_map.line_stretch is not None:
-        line = Event("line stretch", import_map.line_stretch, import_map.line_stretch_sigma, math.nan, math.nan, 0.0)
-    else:
-        try:
-            found = detect_line_stretch(t, g, release.time, import_map.threshold)
-        except EventNotFound as exc:
-            raise InputError(record.spec.path, f"column(s) {columns}", str(exc),
-                             fix.format("line_stretch = <s after release>") + ", or lower "
-                             "[events] line_stretch_threshold") from None
-        line = replace(found, time=found.time - release.time)
-    return release, line
 
 
 # ---------------------------------------------------------------------------
@@ -566,7 +466,7 @@ def import_loggers(import_map, folder) -> ImportResult:
     records = {spec.name: read_logger(spec) for spec in import_map.loggers}
     offsets = clock_offsets(import_map, records)
     g_rec = records[import_map.g_logger]
-    release, line = _events(import_map, g_rec, g_rec.time + offsets[import_map.g_logger].offset)
+    release, line = find_events(import_map, g_rec, g_rec.time + offsets[import_map.g_logger].offset)
     meta = bundle_metadata(import_map, {"release": (0.0, 0.0), "line_stretch": (line.time, line.sigma)}, folder)
     idx, t_rows = _rows(import_map, records, offsets, release.time)
     data, sources = _assemble(import_map, records, offsets, meta, t_rows, idx, release.time)
@@ -578,6 +478,20 @@ def import_loggers(import_map, folder) -> ImportResult:
                         line_stretch_given=import_map.line_stretch is not None)
 
 
+def _logger_rows(result, where):
+    """Where a refused data.csv row came from: its time, and each logger's nearest sample as its file's row."""
+    found = re.match(r"row (\d+)\b", where or "")
+    i = int(found.group(1)) - 2 if found else -1     # data.csv's row 2 is the first sample
+    if not 0 <= i < len(result.test.data):
+        return ""
+    t = float(result.test.time[i])
+    rows = []
+    for name, rec in result.records.items():
+        own = t + result.release.time - result.offsets[name].offset       # on the logger's own clock
+        rows.append(f"{rec.spec.path.name} {_row(rec.spec, int(np.argmin(np.abs(rec.time - own))))}")
+    return f" ({t:.4f} s after release; nearest samples: {', '.join(rows)})"
+
+
 def write_import(result, out) -> Path:
     """Write the bundle and import.json atomically; the bundle is read back and checked before it is put in place."""
     def verify(tmp):
@@ -585,7 +499,7 @@ def write_import(result, out) -> Path:
             check_reducible(read_bundle(tmp))   # what reduce would refuse before any work, too
         except InputError as exc:
             raise InputError(result.import_map.path, "", f"the bundle made from the loggers would be refused: "
-                             f"{Path(exc.file).name}, {exc.where}: {exc.problem}",
+                             f"{Path(exc.file).name}, {exc.where}{_logger_rows(result, exc.where)}: {exc.problem}",
                              f"{exc.fix} (in the map: [record], [test] or a channel's unit)") from None
 
     text = json.dumps(result.report(), indent=2, allow_nan=False) + "\n"
