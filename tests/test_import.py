@@ -487,6 +487,28 @@ def test_a_bundle_read_bundle_would_refuse_is_not_written(tmp_path, sim, capsys)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["gnss.csv", "imu.csv", "map.toml"]
 
 
+def test_a_given_clock_offset_the_signals_contradict_is_questioned(tmp_path, sim, capsys):
+    """A map's offset 5 s off (a typed digit): the import goes on with it, but says where the signals both
+    loggers see match, and import.json keeps it; the right offset, or one 0.4 s off (a receiver's latency), is
+    not questioned."""
+    truth = write_loggers(tmp_path, sim)
+    for shift, questioned in ((-5.0, True), (0.0, False), (0.4, False)):
+        doc = map_document()
+        doc["logger"]["gnss"]["offset"] = truth["offset"] + shift
+        doc["logger"]["gnss"].pop("offset_hint")
+        out = tmp_path / f"bundle{shift}"
+        code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", out)
+        assert code == 0, err
+        assert ("warning: logger 'gnss': the signals both loggers see match at offset" in printed) == questioned
+        logger = json.loads((out / REPORT_NAME).read_text())["loggers"]["gnss"]
+        assert ("signals_prefer_offset_s" in logger) == questioned, logger
+        if questioned:
+            assert abs(logger["signals_prefer_offset_s"] - truth["offset"]) < 0.05
+            said = re.search(r"\(correlation 0\.9\d\), ([+-]\d+\.\d+) s from the map's offset; check "
+                             r"logger\.gnss\.offset, or write offset = \"auto\"", printed)
+            assert said and abs(float(said.group(1)) + shift) < 0.05, printed
+
+
 def test_a_read_back_refusal_names_the_logger_rows_behind_the_bundle_row(tmp_path, sim, capsys):
     """A receiver that logged three samples of zero velocity: the ground-speed q̄ is 0 between them, which the
     bundle refuses at a data.csv row the user never sees; the refusal also says the time after release and each

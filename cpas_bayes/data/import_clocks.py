@@ -27,6 +27,13 @@ class ClockOffset:
     sigma: float
     method: str            # "reference", "given" or "auto"
     alignment: object = None  # the Alignment of an "auto" offset
+    disagreement: object = None   # a given offset's: the Alignment the signals clearly prefer, when far from it
+
+
+# A given offset is questioned when the signals both loggers see match clearly elsewhere: r ≥ 0.9 with the next
+# best match (> 2 s away) 0.2 lower, more than 1 s and 10 sigma from it. A receiver's latency (tenths of a
+# second) stays below that; a clock slip of seconds, a wrong time zone or a typed digit does not.
+QUESTION_CORRELATION, QUESTION_MARGIN, QUESTION_SECONDS, QUESTION_SIGMAS = 0.9, 0.2, 1.0, 10.0
 
 
 def load_factor(accel, sigma=None):
@@ -63,11 +70,12 @@ def clock_offsets(import_map, records) -> dict:
         if spec.name == ref_name:
             offsets[spec.name] = ClockOffset(0.0, 0.0, "reference")
             continue
-        if spec.offset is not None:
-            offsets[spec.name] = ClockOffset(spec.offset, 0.0, "given")
-            continue
         ref_signal = ref_signal or shared_signal(records[ref_name])
         signal = shared_signal(records[spec.name])
+        if spec.offset is not None:
+            offsets[spec.name] = ClockOffset(spec.offset, 0.0, "given",
+                                             disagreement=_questioned(spec.offset, ref_signal, signal))
+            continue
         for name, sig in ((ref_name, ref_signal), (spec.name, signal)):
             if sig is None:
                 raise InputError(import_map.path, where, f"offset = \"auto\" needs a signal both loggers see, and "
@@ -85,6 +93,20 @@ def clock_offsets(import_map, records) -> dict:
                              "or offset = <seconds>") from None
         offsets[spec.name] = ClockOffset(found.offset, found.sigma, "auto", found)
     return offsets
+
+
+def _questioned(given, ref_signal, signal):
+    """The Alignment the shared signals clearly prefer over the ``given`` offset, or None (no shared signal, no
+    clear match, or a match near it). The import goes on with the given offset; the alignment is reported."""
+    if ref_signal is None or signal is None:
+        return None
+    try:
+        found = align_clocks(ref_signal, signal)
+    except EventNotFound:
+        return None
+    clear = found.correlation >= QUESTION_CORRELATION and not found.runner_up > found.correlation - QUESTION_MARGIN
+    far = abs(found.offset - given) > max(QUESTION_SECONDS, QUESTION_SIGMAS * found.sigma)
+    return found if clear and far else None
 
 
 def find_events(import_map, record, t):

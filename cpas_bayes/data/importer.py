@@ -105,12 +105,20 @@ class ImportResult:
             "loggers": {name: {"file": str(rec.spec.path), "rows": len(rec.time), "rate_hz": rec.rate,
                                "clock": rec.spec.clock, "offset_s": self.offsets[name].offset,
                                "offset_sigma_s": self.offsets[name].sigma, "offset_method": self.offsets[name].method,
-                               **_alignment_fields(self.offsets[name].alignment)}
+                               **_alignment_fields(self.offsets[name].alignment),
+                               **_questioned_fields(self.offsets[name].disagreement)}
                         for name, rec in self.records.items()},
             "record": {"start_s": float(t[0]), "end_s": float(t[-1]), "rows": len(t),
                        "rate_hz": self.test.sample_rate},
             "channels": self.sources,
         })
+
+
+def _questioned_fields(alignment):
+    if alignment is None:
+        return {}
+    return {"signals_prefer_offset_s": alignment.offset, "signals_prefer_offset_sigma_s": alignment.sigma,
+            "signals_prefer_correlation": alignment.correlation}
 
 
 def _alignment_fields(alignment):
@@ -449,6 +457,11 @@ def describe(result) -> list:
             clock = (f"offset {off.offset:+.4f} ± {off.sigma:.4f} s (auto: correlation {al.correlation:.2f}, "
                      f"next best {other})")
         lines.append(f"{name}: {rec.spec.path.name}, {len(rec.time):,} rows at {rec.rate:.1f} Hz, {clock}")
+        if off.disagreement is not None:
+            q = off.disagreement
+            lines.append(f"warning: logger '{name}': the signals both loggers see match at offset {q.offset:+.4f} ± "
+                         f"{q.sigma:.4f} s (correlation {q.correlation:.2f}), {q.offset - off.offset:+.3f} s from the "
+                         f"map's offset; check logger.{name}.offset, or write offset = \"auto\"")
     rel, line = result.release, result.line_stretch
     lines.append(f"release at {rel.time:.4f} ± {rel.sigma:.4f} s on {result.import_map.reference}'s clock"
                  f"{' (given)' if result.release_given else ''}: time 0 of the bundle")
