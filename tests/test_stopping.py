@@ -21,7 +21,7 @@ from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.synth import truth_parameter_values
 from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model, run_ensemble, run_ensembles
 from cpas_bayes.inference.stopping import (KEPT_DRAWS, TAIL_QUANTILES, burn_and_thin, chain_statistics, ess_check,
-                                           integrated_time)
+                                           integrated_time, pool_kept)
 
 PHI = 0.5
 
@@ -282,3 +282,34 @@ def test_the_ess_rule_waits_for_a_growing_tau_but_not_for_a_falling_one():
     assert met(1.5 * tau_max)                 # fell by a third: settled
     assert met(tau_max / 1.04)                # grew by 4 %: within tau_rtol
     assert not met(tau_max / 1.10)            # grew by 10 %: still growing
+
+
+def test_the_ess_rule_can_ask_only_the_parameters_a_question_reads():
+    """``columns``: a parameter the question does not read (here one whose ensembles sit 1 sd apart, R-hat
+    well above 1.01) holds back the whole-model rule but not one asked only of the well-mixed parameter; the
+    statistics reported are still every parameter's."""
+    rng = np.random.default_rng(8)
+    chains = [np.moveaxis(_ar1(rng, 0.5, 20, 400, 2), 0, 1) for _ in range(4)]   # (S, W, D) per ensemble
+    for e, c in enumerate(chains):
+        c[:, :, 1] += 1.0 * (e % 2)                      # parameter 1: two ensembles elsewhere
+    first = ess_check(chains, 5, ess_target=200)
+    settled = [np.full(2, 2 * max(float(np.max(t)) for t in first.taus))]
+    whole = ess_check(chains, 5, ess_target=200, tau_prev=settled)
+    asked = ess_check(chains, 5, ess_target=200, tau_prev=settled, columns=np.array([0]))
+    assert not whole.met and asked.met
+    assert asked.statistics.rhat[1] > 1.1 and asked.statistics.worst() == whole.statistics.worst()
+    assert not ess_check(chains, 5, ess_target=200, tau_prev=settled, columns=np.array([1])).met
+
+
+def test_stop_on_names_a_parameter_of_the_model_or_is_refused():
+    """A run asked only of 'c' (the least correlated) meets that parameter's targets, and stops no later than
+    the whole rule; a name the model lacks is refused before any step."""
+    model, inits, seeds = _toy()
+    whole, _ = run_ensembles(model, inits, seeds, _ess_options(1500))
+    asked, seen = run_ensembles(model, inits, seeds, _ess_options(1500, stop_on=("c",)))
+    assert asked[0].converged and asked[0].steps <= whole[0].steps < 20000
+    c = chain_statistics(*pool_kept([np.swapaxes(r.draws, 0, 1) for r in asked]))   # as the rule pooled them
+    assert c.ess_bulk[2] >= 1500 and c.ess_tail[2] >= 1500 and c.rhat[2] <= 1.01
+    assert seen["ess_bulk_min"] == pytest.approx(float(np.min(c.ess_bulk)))     # reported: every parameter's
+    with pytest.raises(ValueError, match="stop_on names 'nope', not a parameter of the model"):
+        run_ensembles(model, inits, seeds, _ess_options(300, stop_on=("nope",)))

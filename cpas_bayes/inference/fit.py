@@ -87,6 +87,7 @@ class SamplerOptions:
     tau_rtol: float = 0.05            # ... and τ moved less than this since the last check (ESS rule: grew)
     ess_target: float = ESS_TARGET    # ESS rule: bulk and tail ESS of every parameter at least this ...
     rhat_target: float = RHAT_TARGET  # ... and its R-hat at most this
+    stop_on: tuple = ()               # ESS rule: only these parameters' ESS and R-hat (default: every one)
     proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (_schedule); "de" alone
     coordinates: str = "model"        # where the walkers move (inference.coordinates): θ itself, or "drag_area"
     map_starts: int = 4
@@ -367,6 +368,7 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
     with ExitStack() as held:
         for ckpt in ckpts:
             held.enter_context(exclusive_writer(ckpt or None))
+        columns = _stop_columns(model, options.stop_on)
         stores = [EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
         proposals = [None] * len(stores)
         k, start, tau_prev = 0, 0, None
@@ -388,7 +390,7 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
                             for st in stores]
                 continue
             check = ess_check(chains, options.store_every, options.ess_target, options.rhat_target, tau_prev,
-                              options.tau_rtol)
+                              options.tau_rtol, columns)
             tau_prev = check.taus
             for label, tau in zip(labels, check.taus) if bars else ():
                 bars.update(label, steps, float(np.max(tau)), check.met)
@@ -403,6 +405,16 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
     worst = check.statistics.worst() if check.statistics else (np.nan, np.nan, np.nan)
     return runs, {"stop": "ess", "ess_bulk_min": worst[0], "ess_tail_min": worst[1], "rhat_max": worst[2],
                   "proposal": options.proposal}
+
+
+def _stop_columns(model, names):
+    """Indices of the parameters ``names`` the ESS rule asks (None: all)."""
+    if not names:
+        return None
+    unknown = [n for n in names if n not in model.names]
+    if unknown:
+        raise ValueError(f"stop_on names {unknown[0]!r}, not a parameter of the model ({', '.join(model.names)})")
+    return np.array([list(model.names).index(n) for n in names])
 
 
 class _ProgressBars:

@@ -172,6 +172,10 @@ class ChainStatistics:
         return bool(np.all(self.ess_bulk >= ess_target) and np.all(self.ess_tail >= ess_target)
                     and np.all(self.rhat <= rhat_target))
 
+    def of(self, columns):
+        """The statistics of the parameters at ``columns`` only."""
+        return ChainStatistics(self.ess_bulk[columns], self.ess_tail[columns], self.rhat[columns])
+
     def worst(self):
         """(min bulk ESS, min tail ESS, max R-hat) over the parameters."""
         return float(np.min(self.ess_bulk)), float(np.min(self.ess_tail)), float(np.max(self.rhat))
@@ -201,8 +205,12 @@ class EssCheck:
     met: bool
 
 
-def ess_check(chains, store_every, ess_target=ESS_TARGET, rhat_target=RHAT_TARGET, tau_prev=None, tau_rtol=0.05):
+def ess_check(chains, store_every, ess_target=ESS_TARGET, rhat_target=RHAT_TARGET, tau_prev=None, tau_rtol=0.05,
+              columns=None):
     """The ESS rule's check on stored chains [(S, W, D)] of E ensembles (all of one length).
+
+    ``columns`` (indices; None: all) are the parameters whose ESS and R-hat the targets ask; τ, burn-in
+    and thinning, and the statistics returned, stay those of every parameter.
 
     τ, burn-in and thinning per ensemble as the fit keeps its draws; then the pooled statistics
     (:func:`chain_statistics`) of the kept draws against the targets. The targets count only once every
@@ -219,4 +227,5 @@ def ess_check(chains, store_every, ess_target=ESS_TARGET, rhat_target=RHAT_TARGE
     if min(k.shape[0] for k in kept) < 4:     # split R-hat needs at least two draws per half
         return EssCheck(taus, burn_thin, None, False)
     stats = chain_statistics(*pool_kept(kept))
-    return EssCheck(taus, burn_thin, stats, settled and stats.meets(ess_target, rhat_target))
+    judged = stats if columns is None else stats.of(columns)
+    return EssCheck(taus, burn_thin, stats, settled and judged.meets(ess_target, rhat_target))
