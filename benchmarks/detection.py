@@ -39,7 +39,7 @@ from pathlib import Path
 STUDIES = ("clean", "ooc", "pairs", "power", "form")
 PAIRS = ("sensor_lag+canopy_breathing", "added_mass+friction_drift", "friction_drift+canopy_breathing",
          "sensor_lag+added_mass")
-POWER_SIZES = {"added_mass": (0.2, 0.4), "friction_drift": (0.03, 0.05), "sensor_lag": (0.02, 0.04),
+POWER_SIZES = {"added_mass": (0.2, 0.4, 0.6), "friction_drift": (0.03, 0.05), "sensor_lag": (0.02, 0.04, 0.08),
                "canopy_breathing": (0.03, 0.06)}
 FIELDS = ["study", "scenario", "effect", "magnitude", "seed", "mode", "expected", "causes", "verdict", "right",
           "discrepancy_gain", "seconds"]
