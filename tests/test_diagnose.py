@@ -110,6 +110,22 @@ def test_a_term_that_takes_over_a_significant_discrepancy_is_named_below_two_se(
     assert (check.gains and check.eligible) == named, check.reasons
 
 
+@pytest.mark.parametrize("gain,share,misfit,named", [
+    (-6.0, 0.97, True, True),     # a lag found exactly: the discrepancy collapses, the bins cannot tell them apart
+    (-6.0, 0.85, True, False),    # most but not nearly all of it: a stand-in could do that
+    (-6.0, 0.97, False, False),   # nothing significant to explain
+    (-60.0, 0.97, True, False),   # clearly worse than the generic term
+])
+def test_a_term_that_explains_a_significant_discrepancy_is_named_without_beating_it(gain, share, misfit, named):
+    """Gain within 2 se of zero: named only when the term takes over ≥ 90 % of a significant discrepancy."""
+    ref, cands = _field({"sensor_lag": gain}, jitter=0.9)
+    check = rule.check_term("sensor_lag", cands["sensor_lag"], ref, OPTIONS, share=share, misfit=misfit)
+    assert check.elpd_diff_se > 15 and (abs(check.elpd_diff) < 2 * check.elpd_diff_se) == (gain > -30)
+    assert (check.gains and check.eligible) == named, check.reasons
+    if named:
+        assert any("as well as the generic term does" in r for r in check.reasons)
+
+
 def test_a_small_gain_names_nothing():
     ref, cands = _field({"sensor_lag": 6.0})
     assert _judge(ref, cands)[1][0] is None
