@@ -177,9 +177,8 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
                               "give the density on rows that have the altitude (at least 2), or leave the column "
                               "empty to use the standard atmosphere")
         h_d, rho_d = d["altitude"].to_numpy(float)[both], d["density"].to_numpy(float)[both]
-        # weather moves density by ±20 % at most from the standard atmosphere; a unit slip by far more
-        ratio = float(np.median(rho_d / standard_density(np.clip(h_d, ATMOSPHERE_FLOOR, TOP_GEOPOTENTIAL_ALTITUDE))))
-        if not 1 / 3 <= ratio <= 3:
+        ratio = _standard_ratio(h_d, rho_d)
+        if not DENSITY_RATIO[0] <= ratio <= DENSITY_RATIO[1]:
             raise BundleError(csv, "column 'density'", f"the density is {ratio:.3g}× the standard "
                               "atmosphere's at the logged altitude", "check its unit (the bundle's: kg/m³ in an "
                               "SI bundle, slug/ft³ in a US one) and the altitude's")
@@ -187,9 +186,8 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         table = np.exp(np.interp(alt, h_d[order], np.log(rho_d[order])))
     elif spec is not None and spec.atmosphere is not None:
         profile = spec.atmosphere
-        ratio = float(np.median(profile.density / standard_density(np.clip(profile.altitude, ATMOSPHERE_FLOOR,
-                                                                           TOP_GEOPOTENTIAL_ALTITUDE))))
-        if not 1 / 3 <= ratio <= 3:   # as for a density column: weather moves it by ±20 %, a unit slip by far more
+        ratio = _standard_ratio(profile.altitude, profile.density)
+        if not DENSITY_RATIO[0] <= ratio <= DENSITY_RATIO[1]:
             toml = test.source / TOML_NAME if test.source else test.label
             raise BundleError(toml, "key 'atmosphere.density'", f"the profile's density is {ratio:.3g}× the "
                               "standard atmosphere's at its altitudes", "check its unit (the bundle's: kg/m³ in an "
@@ -205,6 +203,16 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         wind_altitude=np.asarray(w_alt, float), wind_north=np.asarray(w_n, float),
         wind_east=np.asarray(w_e, float), wind_sigma=w_sigma, first_velocity_time=float(t_v[0]),
         first_velocity=vel[0], density_altitude=alt, density_table=table, held_before=bool((~after).any()))
+
+
+# Weather moves density by ±20 % at most from the standard atmosphere; a unit slip (slug/ft³ for kg/m³) by far more.
+DENSITY_RATIO = (1 / 3, 3.0)
+
+
+def _standard_ratio(altitude, density):
+    """Median of a density over the standard atmosphere's at the same altitudes (clipped to its layers)."""
+    h = np.clip(np.asarray(altitude, float), ATMOSPHERE_FLOOR, TOP_GEOPOTENTIAL_ALTITUDE)
+    return float(np.median(np.asarray(density, float) / standard_density(h)))
 
 
 # The error model holds dense matrices of the receiver's samples (3 per velocity, 1 per altitude) and the

@@ -50,7 +50,7 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_P
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_term, compare_table,
                                                  fit_converged, paired_difference, passes, structured_phases,
-                                                 unexplained_share, versus_baseline)
+                                                 unexplained_share, verdict_parameters, versus_baseline)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals
@@ -458,8 +458,7 @@ def _retry_options(options, candidate, term):
     ESS and R-hat targets. A Drogue's added mass (k_a 0.4, seed 40008) stopped at the 3× limit with k_a's
     bulk ESS 397 of 400, R-hat 1.0002 and both ensembles' gains 1 apart, because a full-open decay time
     (ESS 327) held the whole-model rule back."""
-    read = tuple(p.name for p in candidate.fit.model.parameters if p.group in (term, DISCREPANCY))
-    return replace(options, sampler=replace(options.sampler, stop_on=read,
+    return replace(options, sampler=replace(options.sampler, stop_on=verdict_parameters(candidate, term),
                                             max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR,
                                             tau_factor=options.sampler.tau_factor * RETRY_STEPS_FACTOR))
 

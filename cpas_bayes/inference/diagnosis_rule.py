@@ -143,6 +143,12 @@ def ensemble_gains(candidate: CandidateFit, reference: CandidateFit):
     return gains
 
 
+def verdict_parameters(candidate: CandidateFit, term):
+    """Names of the parameters the verdict on ``term`` reads in ``candidate``: the term's (its size, its edges)
+    and the discrepancy's (the share it takes over)."""
+    return tuple(p.name for p in candidate.fit.model.parameters if p.group in (term, DISCREPANCY))
+
+
 def comparison_settled(candidate: CandidateFit, reference: CandidateFit, se, term=None):
     """Whether a fit short of R-hat 1.01 still settles the comparison: bulk ESS ≥ 400, R-hat ≤ 1.05
     and the gains its ensembles give one by one within ``se`` (the comparison's own standard error
@@ -158,7 +164,7 @@ def comparison_settled(candidate: CandidateFit, reference: CandidateFit, se, ter
     rhat, ess = d["rhat_max"], d["ess_bulk_min"]
     per = candidate.fit.summary.get("diagnostics_per_parameter")
     if term is not None and per:
-        read = [p.name for p in candidate.fit.model.parameters if p.group in (term, DISCREPANCY)]
+        read = verdict_parameters(candidate, term)
         rhat = max(per[n]["rhat"] for n in read)
         ess = min(per[n]["ess_bulk"] for n in read)
     if not (ess >= ESS_MIN and rhat <= RHAT_LOOSE):
