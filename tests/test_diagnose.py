@@ -227,6 +227,65 @@ def test_two_terms_that_explain_alike_are_not_clearly_apart():
     assert any("on trial" in r for r in reasons)
 
 
+@pytest.mark.parametrize("map_gain, rivals", [(8.0, False), (40.0, True), (900.0, True)])
+def test_a_term_whose_map_gain_bounds_it_below_a_clear_leader_cannot_rival_it(map_gain, rivals):
+    # the leader gains 60: a rival's elpd gain is at most its MAP gain + the prior's share (3), and the
+    # leader must stay clear of that bound by the margin rule (> 10 ahead and ≥ 1.5× it)
+    ref, cands = _field({"sensor_lag": 60.0})
+    leader = rule.check_term("sensor_lag", cands["sensor_lag"], ref, OPTIONS)
+    assert leader.gains and leader.eligible
+    assert rule.cannot_rival(leader, map_gain, OPTIONS) is (not rivals)
+    weak = rule.check_term("sensor_lag", _field({"sensor_lag": 4.0})[1]["sensor_lag"], ref, OPTIONS)
+    assert not rule.cannot_rival(weak, 0.0, OPTIONS)      # a leader that does not pass defers nothing
+
+
+class _InProcess:
+    workers = 1
+
+    def map(self, fn, jobs, **kw):
+        return [fn(j) for j in jobs]
+
+    def describe(self):
+        return "this process"
+
+
+@pytest.mark.parametrize("breathing_map_gain, sampled_in_round_1", [(20.0, ["added_mass"]),
+                                                                     (900.0, ["added_mass", "canopy_breathing"])])
+def test_forward_selection_samples_the_leader_first_and_leaves_terms_that_cannot_rival_it(
+        monkeypatch, breathing_map_gain, sampled_in_round_1):
+    # round 1: added mass rises by 1,000 at its MAP and gains 200 in elpd; breathing's screen bounds its gain
+    # by its MAP gain. Below the leader's reach it waits for round 2 (where it no longer rises); within it,
+    # it is sampled in round 1 as before.
+    ref, cands = _field({"added_mass": 200.0, "canopy_breathing": 30.0})
+    gains = {(0, "added_mass"): 1000.0, (0, "canopy_breathing"): breathing_map_gain, (0, "friction_drift"): 2.0,
+             (1, "canopy_breathing"): 3.0, (1, "friction_drift"): 2.0}
+    sampled = []
+
+    def screened(label, test, reduction, options, reference, baseline=None, term=None, part=None):
+        g = gains[(int(reference.name != cf.DISCREPANCY), term)]
+        return cf.ScreenResult(name=term, map_gain=g, size=1.0, passed=g > options.screen_gain,
+                               theta_map=np.zeros(1), seconds=0.0)
+
+    def fitted(label, *a, **kw):
+        sampled.append(label)
+        return cands[label.split("+")[0]]
+
+    monkeypatch.setattr(dg, "screen_candidate", screened)
+    monkeypatch.setattr(dg, "fit_candidate", fitted)
+    monkeypatch.setattr(dg, "for_tasks", lambda c: c)
+    monkeypatch.setattr(dg, "discrepancy_energy", lambda c: 1.0)
+    test = SimpleNamespace(name="T")
+    named, reference, rounds, fits, _ = dg._forward_selection(
+        test, None, OPTIONS, ref, ref, ["added_mass", "friction_drift", "canopy_breathing"], _InProcess(),
+        lambda m: None)
+    assert named == ["added_mass"]
+    assert [label.split("+")[0] for label in sampled] == sampled_in_round_1
+    waiting = [t for t in ["canopy_breathing"] if t not in sampled_in_round_1]
+    assert rounds[0]["waiting"] == waiting
+    assert any("could not rival added_mass" in r for r in rounds[0]["reasons"]) is bool(waiting)
+    assert [c.term for c in rounds[1]["checks"]] == []       # round 2: nothing rises, nothing sampled
+
+
 def test_paired_difference_se_is_the_arviz_formula():
     ref, cands = _field({"sensor_lag": 60.0})
     diff, se = rule.paired_difference(cands["sensor_lag"], ref)

@@ -18,10 +18,11 @@ Procedure (``diagnose_test``)
    rises by > 5 (mode ``screen``: also with T's size beyond its floor) — the
    MAP gain bounds the elpd gain from above, so a term that cannot raise the
    best fit cannot predict held-out bins better) and judge T against
-   named + discrepancy (:mod:`cpas_bayes.inference.diagnosis_rule`), refitting
-   once with 3× the steps (mode full) a term that gains and fails only on convergence; name the
-   best passing term, add it to the reference and try the others again,
-   until none passes.
+   named + discrepancy (:mod:`cpas_bayes.inference.diagnosis_rule`), largest
+   MAP gain first (terms that could not rival a passing leader wait a round);
+   mode full refits with up to 4× the steps a term that gains and fails only on
+   convergence, from its first fit's MAP; name the best passing term,
+   add it to the reference and try the others again, until none passes.
 4. **Unexplained?** Fit the named terms without the discrepancy: the
    discrepancy's gain over them is what is left; ``unexplained`` joins the
    causes when that remainder is significant and the named terms explain less
@@ -48,9 +49,9 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_P
                                                  fit_model_form, for_tasks, model_label, polish_baseline_map,
                                                  screen_candidate)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
-from cpas_bayes.inference.diagnosis_rule import (adequacy, check_term, choose_term, compare_table,
+from cpas_bayes.inference.diagnosis_rule import (adequacy, cannot_rival, check_term, choose_term, compare_table,
                                                  fit_converged, paired_difference, passes, structured_phases,
-                                                 unexplained_share, verdict_parameters, versus_baseline)
+                                                 unexplained_share, versus_baseline)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals
@@ -106,11 +107,11 @@ def _screen_task(job):
 
 
 def _candidate_task(job, executor=None):
-    label, test, reduction, options, reference, baseline, guesses = job
+    label, test, reduction, options, reference, baseline, guesses, *stop_on_term = job
     if label.startswith("form:"):
         return fit_model_form(label[5:], test, reduction, options, executor=executor)
     return fit_candidate(label, test, reduction, options, reference=reference, baseline=baseline, guesses=guesses,
-                         executor=executor)
+                         executor=executor, stop_on_term=stop_on_term[0] if stop_on_term else None)
 
 
 # ---------------------------------------------------------------------------
@@ -401,30 +402,23 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
                 + (f", size {r.size:.3g}" if r.size is not None else "") + (" → sample" if r.passed else ""))
         if not named:
             first_screen = screen
-        to_fit = [t for t in remaining if screen[t].passed]
-        jobs = [(labels[t], test, reduction, options, light_reference, light_baseline,
-                 [screen[t].theta_map]) for t in to_fit]
-        fitted = dict(zip(to_fit, _run_fits(executor, jobs, say, test.name)))
-        fits.update({labels[t]: f for t, f in fitted.items()})
+        # largest MAP gain first: a leader no other screened term could rival leaves them to the next round
+        # (not while a term is on trial: its rival must be judged in this one)
+        to_fit = sorted([t for t in remaining if screen[t].passed], key=lambda t: -screen[t].map_gain)
         reference_energy = discrepancy_energy(reference)
-
-        def judge(t):
-            share = 1.0 - discrepancy_energy(fitted[t]) / reference_energy if reference_energy > 0 else None
-            return check_term(t, fitted[t], reference, options, misfit=misfit, share=share)
-
-        checks = [judge(t) for t in to_fit]
-        # A term that gains, and fails only on convergence, gets one longer fit from its MAP: the
-        # form parameters of a term (an added mass's lag) can need more steps than the diagnosis' budget.
-        retry = [c.term for c in checks if options.mode == "full"    # mode screen is the quick look
-                 and c.gains and not c.converged and not (c.below_floor or c.at_edge or c.size_repeats_prior)]
-        if retry:
-            say(f"{test.name}: {', '.join(retry)} gained but did not converge: a fit up to {RETRY_STEPS_FACTOR}× "
-                "longer, until the parameters the verdict reads are on target")
-            jobs = [(labels[t], test, reduction, _retry_options(options, fitted[t], t), light_reference,
-                     light_baseline, [fitted[t].fit.sampling.theta_map]) for t in retry]
-            fitted.update(zip(retry, _run_fits(executor, jobs, say, test.name)))
-            fits.update({labels[t]: fitted[t] for t in retry})
-            checks = [judge(t) for t in to_fit]
+        fitted, checks, waiting = {}, [], []
+        for batch in (to_fit[:1], to_fit[1:]):
+            if not batch:
+                continue
+            leader = max(checks, key=lambda c: c.elpd_diff) if checks else None
+            if leader is not None and trial is None and all(cannot_rival(leader, screen[t].map_gain, options) for t in batch):
+                waiting = batch
+                break
+            fitted.update(_fit_and_judge(batch, test, reduction, options, reference, light_reference,
+                                         light_baseline, screen, labels, misfit, reference_energy, executor, say))
+            checks = [fitted[t][1] for t in to_fit if t in fitted]
+        fitted = {t: f for t, (f, _) in fitted.items()}
+        fits.update({labels[t]: f for t, f in fitted.items()})
         chosen, clear, reasons = choose_term(checks, {f.name: f for f in fitted.values()}, options)
         if trial is not None:
             earlier, rival = trial
@@ -438,8 +432,12 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
                 reference = fits.get(model_label(named, discrepancy=True), discrepancy)
                 break
             trial = None
+        if waiting:
+            reasons.append(f"not sampled this round: {', '.join(waiting)} (MAP gain "
+                           + ", ".join(f"{screen[t].map_gain:+.1f}" for t in waiting)
+                           + f"), which could not rival {chosen}; tried again with it in the reference")
         rounds.append({"named": list(named), "reference": reference.name, "checks": checks, "screen": screen,
-                       "chosen": chosen, "reasons": reasons})
+                       "chosen": chosen, "reasons": reasons, "waiting": waiting})
         if chosen is None:
             break
         if not clear:
@@ -451,15 +449,44 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
     return named, reference, rounds, fits, first_screen
 
 
-def _retry_options(options, candidate, term):
-    """The longer fit of a term that gained but did not converge: up to RETRY_STEPS_FACTOR× the steps (both
-    limits: with the same seed a fit whose τ rule was met would stop where it did), stopping once the
-    parameters the verdict reads (the term's and the discrepancy's, :func:`comparison_settled`) reach their
-    ESS and R-hat targets. A Drogue's added mass (k_a 0.4, seed 40008) stopped at the 3× limit with k_a's
-    bulk ESS 397 of 400, R-hat 1.0002 and both ensembles' gains 1 apart, because a full-open decay time
-    (ESS 327) held the whole-model rule back."""
-    return replace(options, sampler=replace(options.sampler, stop_on=verdict_parameters(candidate, term),
-                                            max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR,
+def _fit_and_judge(terms, test, reduction, options, reference, light_reference, light_baseline, screen, labels,
+                   misfit, reference_energy, executor, say):
+    """Sample named + T + discrepancy for each of ``terms`` from its screen's MAP and judge it against
+    ``reference``: {term: (CandidateFit, TermCheck)}.
+
+    The form parameters of a term (an added mass's lag) can need more steps than the diagnosis' budget: in
+    mode full a term that gains and fails only on convergence gets one longer fit from its MAP
+    (:func:`_long_options`). Not at once: a Main's added mass (k_a 0.4, seed 40001) given the longer fit
+    from the screen's MAP ended at R-hat 1.14 after 8,000 steps (217 s), where the first fit (2,000 steps,
+    R-hat 1.04) and a longer one from its MAP settled the comparison in 108 s."""
+    full = options.mode == "full"            # mode screen is the quick look
+    jobs = [(labels[t], test, reduction, options, light_reference, light_baseline, [screen[t].theta_map])
+            for t in terms]
+    fitted = dict(zip(terms, _run_fits(executor, jobs, say, test.name)))
+
+    def judge(t):
+        share = 1.0 - discrepancy_energy(fitted[t]) / reference_energy if reference_energy > 0 else None
+        return check_term(t, fitted[t], reference, options, misfit=misfit, share=share)
+
+    checks = {t: judge(t) for t in terms}
+    retry = [t for t, c in checks.items() if full
+             and c.gains and not c.converged and not (c.below_floor or c.at_edge or c.size_repeats_prior)]
+    if retry:
+        say(f"{test.name}: {', '.join(retry)} gained but did not converge: a fit up to {RETRY_STEPS_FACTOR}× "
+            "longer, until the parameters the verdict reads are on target")
+        jobs = [(labels[t], test, reduction, _long_options(options), light_reference, light_baseline,
+                 [fitted[t].fit.sampling.theta_map], t) for t in retry]
+        fitted.update(zip(retry, _run_fits(executor, jobs, say, test.name)))
+        checks.update({t: judge(t) for t in retry})
+    return {t: (fitted[t], checks[t]) for t in terms}
+
+
+def _long_options(options):
+    """The longer fit of a term: up to RETRY_STEPS_FACTOR× the steps (both limits: with the same seed a fit
+    whose τ rule was met would stop where it did), stopping once the parameters the verdict reads (the
+    term's and the discrepancy's, ``fit_candidate(stop_on_term=)``) reach their ESS and R-hat targets: a
+    Drogue's added mass (k_a 0.4) stopped at 3× with k_a at ESS 397 held back by a decay time's 327."""
+    return replace(options, sampler=replace(options.sampler, max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR,
                                             tau_factor=options.sampler.tau_factor * RETRY_STEPS_FACTOR))
 
 

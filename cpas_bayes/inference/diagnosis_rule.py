@@ -56,7 +56,12 @@ effects gain ≥ 20; 10 sits between.
 
 Forward selection: after naming a term it joins the reference model and the
 remaining terms are tried again (screened by their MAP gain, then sampled),
-until none passes or ``max_causes`` are named.
+until none passes or ``max_causes`` are named. Within a round the term with
+the largest MAP gain is sampled first; when it passes and no other screened
+term could rival it (:func:`cannot_rival`: a rival's elpd gain is bounded by
+its MAP gain plus its prior's share, and even that bound would leave the
+leader clearly ahead), the others wait for the next round, where they are
+screened and judged again with the leader in the reference.
 
 Adequacy of the baseline (:func:`adequacy`) — what ``none`` requires
 --------------------------------------------------------------------
@@ -94,7 +99,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from cpas_bayes.inference.candidate_fits import BASELINE, DISCREPANCY, CandidateFit, DiagnoseOptions, psis_loo
+from cpas_bayes.inference.candidate_fits import (BASELINE, CandidateFit, DiagnoseOptions, psis_loo,
+                                                 verdict_names)
 from cpas_bayes.inference.fit_health import ESS_MIN, RHAT_MAX
 from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
 
@@ -143,12 +149,6 @@ def ensemble_gains(candidate: CandidateFit, reference: CandidateFit):
     return gains
 
 
-def verdict_parameters(candidate: CandidateFit, term):
-    """Names of the parameters the verdict on ``term`` reads in ``candidate``: the term's (its size, its edges)
-    and the discrepancy's (the share it takes over)."""
-    return tuple(p.name for p in candidate.fit.model.parameters if p.group in (term, DISCREPANCY))
-
-
 def comparison_settled(candidate: CandidateFit, reference: CandidateFit, se, term=None):
     """Whether a fit short of R-hat 1.01 still settles the comparison: bulk ESS ≥ 400, R-hat ≤ 1.05
     and the gains its ensembles give one by one within ``se`` (the comparison's own standard error
@@ -164,7 +164,7 @@ def comparison_settled(candidate: CandidateFit, reference: CandidateFit, se, ter
     rhat, ess = d["rhat_max"], d["ess_bulk_min"]
     per = candidate.fit.summary.get("diagnostics_per_parameter")
     if term is not None and per:
-        read = verdict_parameters(candidate, term)
+        read = verdict_names(candidate.fit.model, term)
         rhat = max(per[n]["rhat"] for n in read)
         ess = min(per[n]["ess_bulk"] for n in read)
     if not (ess >= ESS_MIN and rhat <= RHAT_LOOSE):
@@ -323,6 +323,23 @@ def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: 
     if check.size_repeats_prior:
         r.append(f"{term}'s size posterior repeats its prior: the data do not inform it")
     return check
+
+
+PRIOR_SHARE = 3.0   # log prior density of a catalogued term's parameters at their MAP stays below this
+
+
+def cannot_rival(leader: TermCheck, map_gain, options: DiagnoseOptions):
+    """Whether a term whose screen rose by ``map_gain`` in log posterior could neither be chosen over
+    ``leader`` (a passing term) nor deny it a clear lead (:func:`choose_term`).
+
+    The MAP gain bounds the elpd gain from above up to the prior's share (a term that cannot raise the
+    best fit cannot predict held-out bins better), so the rival's gain is at most ``map_gain`` +
+    :data:`PRIOR_SHARE`; the leader is clear of that bound by the margin rule without its se."""
+    if not (leader.gains and leader.eligible):
+        return False
+    bound = max(float(map_gain), 0.0) + PRIOR_SHARE
+    return bool(leader.elpd_diff - bound > options.min_gain
+                and leader.elpd_diff >= options.min_margin_ratio * bound)
 
 
 def choose_term(checks, candidates, options: DiagnoseOptions):

@@ -50,7 +50,7 @@ _WHAT = {
 
 def _rounds(d: Diagnosis):
     return [{"named_before": r["named"], "reference": r["reference"], "chosen": r["chosen"], "reasons": r["reasons"],
-             "terms": [c.as_dict() for c in r["checks"]],
+             "terms": [c.as_dict() for c in r["checks"]], "waiting": list(r.get("waiting", [])),
              "screen": {n: {"map_gain": x.map_gain, "size": x.size, "passed": x.passed} for n, x in r["screen"].items()}}
             for r in d.rounds]
 
@@ -177,7 +177,11 @@ def diagnosis_markdown(d: Diagnosis, units):
                          f"{'yes' if c.converged else '**failed**'} | {size} | {flags or '—'} | "
                          f"{'yes' if c.gains and c.eligible else 'no'} |")
         for name, x in r["screen"].items():
-            if name not in {c.term for c in r["checks"]}:
+            if name in r.get("waiting", []):
+                lines.append(f"| {i + 1} | {name} | not sampled: MAP gain {x.map_gain:+.1f} could not rival "
+                             f"{r['chosen']} (tried again next round) | — | "
+                             f"{'—' if x.size is None else f'{x.size:.3g}'} | — | no |")
+            elif name not in {c.term for c in r["checks"]}:
                 lines.append(f"| {i + 1} | {name} | not sampled: MAP gain {x.map_gain:+.1f} (screen) | — | "
                              f"{'—' if x.size is None else f'{x.size:.3g}'} | — | no |")
     lines += ["", "## Every model fitted (elpd gain over the baseline, PSIS-LOO)", "",
