@@ -264,9 +264,9 @@ def _ground(m, name, entry, factor, where):
                "write ground = the drop zone's elevation above sea level, in the channel's unit")
     metres = float(value) * factor
     if not GROUND_RANGE[0] <= metres <= GROUND_RANGE[1]:
-        m.fail(f"{where}.ground", f"{value} {entry['unit']} = {metres:.0f} m is not a ground elevation on Earth's "
-               f"drop zones ({GROUND_RANGE[0]:.0f} to {GROUND_RANGE[1]:.0f} m)",
-               "write the site's elevation above sea level in the channel's unit")
+        given = f"{value:g} m" if factor == 1.0 else f"{value:g} {entry['unit']} = {metres:.0f} m"
+        m.fail(f"{where}.ground", f"{given} is not a ground elevation on Earth's drop zones ({GROUND_RANGE[0]:.0f} "
+               f"to {GROUND_RANGE[1]:.0f} m)", "write the site's elevation above sea level in the channel's unit")
     return metres
 
 
