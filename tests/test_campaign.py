@@ -60,6 +60,29 @@ def test_configurations_are_named_by_kind_count_and_stages():
     assert cp.configuration_of(synthesize("main", "none", 1)[0]) == "3xmain-3st"
 
 
+def test_the_costliest_tests_are_handed_out_first_and_come_back_in_bundle_order():
+    from cpas_bayes.data.synth import synthesize
+    from cpas_bayes.data.synth_logger import synthesize_logger
+
+    drogue, main_ = synthesize("drogue", "none", 1)[0], synthesize("main", "none", 1)[0]
+    logger = synthesize_logger("logger-drop", 1)[0]
+    # measured on the benchmark run: logger drop 70 s > three-Main 37 s > two-Drogue 15 s
+    assert cp.test_cost(logger) > cp.test_cost(main_) > cp.test_cost(drogue)
+
+    class Recording:
+        handed = []
+
+        def map(self, fn, jobs, **kw):
+            self.handed = list(jobs)
+            return [fn(j) for j in jobs]
+
+    ex = Recording()
+    jobs = ["D1", "D2", "M1", "D3", "L1", "M2"]
+    costs = [1.0, 1.0, 2.0, 1.0, 9.0, 2.0]
+    assert cp.map_costliest_first(ex, str.lower, jobs, costs) == ["d1", "d2", "m1", "d3", "l1", "m2"]
+    assert ex.handed == ["L1", "M1", "M2", "D1", "D2", "D3"]      # costliest first, stable among equals
+
+
 QUICK = """
 name = "test campaign"
 workers = 1
