@@ -216,14 +216,13 @@ def verdict_names(model, term):
 
 
 def fit_candidate(label, test, reduction, options: DiagnoseOptions, reference=None, baseline=None, echo=None,
-                  index=None, guesses=None, executor=None, stop_on_term=None):
+                  index=None, guesses=None, executor=None):
     """Fit the model ``label`` (``"baseline"``, ``"discrepancy"``, ``"added_mass+discrepancy"``, ...).
 
     A model other than the baseline starts from ``reference``'s MAP (default
     ``baseline``) with its new terms at their start points; ``guesses``
     replace those starts (e.g. a screen's MAP); ``executor`` runs the fit's
-    ensembles. ``stop_on_term``: the ESS rule asks only the parameters a verdict
-    on that term reads (:func:`verdict_names`).
+    ensembles.
     """
     started = _time.perf_counter()
     index = candidate_seed_index(label) if index is None else index
@@ -233,8 +232,6 @@ def fit_candidate(label, test, reduction, options: DiagnoseOptions, reference=No
         fit = fit_model(model, sampler, echo=echo, executor=executor)
     else:
         model = _model_for(label, test, reduction, options, baseline)
-        if stop_on_term is not None:
-            sampler = replace(sampler, stop_on=verdict_names(model, stop_on_term))
         # Given optima (a screen's MAP, which searched from every start point) or a reference that holds
         # every term of the model (its MAP is this model's but for the terms dropped) are searched from
         # alone: a jittered copy would cost a whole search (20–60 s on a Main with added mass) to find

@@ -47,7 +47,7 @@ from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_PARTS, CandidateFit,
                                                  DiagnoseOptions, baseline_from_fit, best_screen, fit_candidate,
                                                  fit_model_form, for_tasks, model_label, polish_baseline_map,
-                                                 screen_candidate)
+                                                 screen_candidate, verdict_names)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, cannot_rival, check_term, choose_term, compare_table,
                                                  fit_converged, paired_difference, passes, structured_phases,
@@ -107,11 +107,11 @@ def _screen_task(job):
 
 
 def _candidate_task(job, executor=None):
-    label, test, reduction, options, reference, baseline, guesses, *stop_on_term = job
+    label, test, reduction, options, reference, baseline, guesses = job
     if label.startswith("form:"):
         return fit_model_form(label[5:], test, reduction, options, executor=executor)
     return fit_candidate(label, test, reduction, options, reference=reference, baseline=baseline, guesses=guesses,
-                         executor=executor, stop_on_term=stop_on_term[0] if stop_on_term else None)
+                         executor=executor)
 
 
 # ---------------------------------------------------------------------------
@@ -406,18 +406,18 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
         # (not while a term is on trial: its rival must be judged in this one)
         to_fit = sorted([t for t in remaining if screen[t].passed], key=lambda t: -screen[t].map_gain)
         reference_energy = discrepancy_energy(reference)
-        fitted, checks, waiting = {}, [], []
+        fitted, judged, waiting = {}, {}, []
         for batch in (to_fit[:1], to_fit[1:]):
             if not batch:
                 continue
-            leader = max(checks, key=lambda c: c.elpd_diff) if checks else None
-            if leader is not None and trial is None and all(cannot_rival(leader, screen[t].map_gain, options) for t in batch):
+            leader = max(judged.values(), key=lambda c: c.elpd_diff) if judged else None
+            if leader is not None and trial is None and all(cannot_rival(leader, screen[t].map_gain, options)
+                                                            for t in batch):
                 waiting = batch
                 break
-            fitted.update(_fit_and_judge(batch, test, reduction, options, reference, light_reference,
-                                         light_baseline, screen, labels, misfit, reference_energy, executor, say))
-            checks = [fitted[t][1] for t in to_fit if t in fitted]
-        fitted = {t: f for t, (f, _) in fitted.items()}
+            _fit_and_judge(batch, test, reduction, options, reference, light_reference, light_baseline, screen,
+                           labels, misfit, reference_energy, executor, say, fitted, judged)
+        checks = [judged[t] for t in to_fit if t in judged]
         fits.update({labels[t]: f for t, f in fitted.items()})
         chosen, clear, reasons = choose_term(checks, {f.name: f for f in fitted.values()}, options)
         if trial is not None:
@@ -450,43 +450,43 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
 
 
 def _fit_and_judge(terms, test, reduction, options, reference, light_reference, light_baseline, screen, labels,
-                   misfit, reference_energy, executor, say):
+                   misfit, reference_energy, executor, say, fitted, judged):
     """Sample named + T + discrepancy for each of ``terms`` from its screen's MAP and judge it against
-    ``reference``: {term: (CandidateFit, TermCheck)}.
+    ``reference``, into ``fitted`` {term: CandidateFit} and ``judged`` {term: TermCheck}.
 
     The form parameters of a term (an added mass's lag) can need more steps than the diagnosis' budget: in
     mode full a term that gains and fails only on convergence gets one longer fit from its MAP
     (:func:`_long_options`). Not at once: a Main's added mass (k_a 0.4, seed 40001) given the longer fit
     from the screen's MAP ended at R-hat 1.14 after 8,000 steps (217 s), where the first fit (2,000 steps,
     R-hat 1.04) and a longer one from its MAP settled the comparison in 108 s."""
-    full = options.mode == "full"            # mode screen is the quick look
     jobs = [(labels[t], test, reduction, options, light_reference, light_baseline, [screen[t].theta_map])
             for t in terms]
-    fitted = dict(zip(terms, _run_fits(executor, jobs, say, test.name)))
+    fitted.update(zip(terms, _run_fits(executor, jobs, say, test.name)))
 
     def judge(t):
         share = 1.0 - discrepancy_energy(fitted[t]) / reference_energy if reference_energy > 0 else None
         return check_term(t, fitted[t], reference, options, misfit=misfit, share=share)
 
-    checks = {t: judge(t) for t in terms}
-    retry = [t for t, c in checks.items() if full
-             and c.gains and not c.converged and not (c.below_floor or c.at_edge or c.size_repeats_prior)]
+    judged.update({t: judge(t) for t in terms})
+    retry = [t for t in terms if options.mode == "full"    # mode screen is the quick look
+             and judged[t].gains and not judged[t].converged
+             and not (judged[t].below_floor or judged[t].at_edge or judged[t].size_repeats_prior)]
     if retry:
         say(f"{test.name}: {', '.join(retry)} gained but did not converge: a fit up to {RETRY_STEPS_FACTOR}× "
             "longer, until the parameters the verdict reads are on target")
-        jobs = [(labels[t], test, reduction, _long_options(options), light_reference, light_baseline,
-                 [fitted[t].fit.sampling.theta_map], t) for t in retry]
+        jobs = [(labels[t], test, reduction, _long_options(options, verdict_names(fitted[t].fit.model, t)),
+                 light_reference, light_baseline, [fitted[t].fit.sampling.theta_map]) for t in retry]
         fitted.update(zip(retry, _run_fits(executor, jobs, say, test.name)))
-        checks.update({t: judge(t) for t in retry})
-    return {t: (fitted[t], checks[t]) for t in terms}
+        judged.update({t: judge(t) for t in retry})
 
 
-def _long_options(options):
+def _long_options(options, stop_on):
     """The longer fit of a term: up to RETRY_STEPS_FACTOR× the steps (both limits: with the same seed a fit
-    whose τ rule was met would stop where it did), stopping once the parameters the verdict reads (the
-    term's and the discrepancy's, ``fit_candidate(stop_on_term=)``) reach their ESS and R-hat targets: a
+    whose τ rule was met would stop where it did), stopping once ``stop_on``, the parameters the verdict
+    reads (the term's and the discrepancy's, :func:`verdict_names`), reach their ESS and R-hat targets: a
     Drogue's added mass (k_a 0.4) stopped at 3× with k_a at ESS 397 held back by a decay time's 327."""
-    return replace(options, sampler=replace(options.sampler, max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR,
+    return replace(options, sampler=replace(options.sampler, stop_on=stop_on,
+                                            max_steps=options.sampler.max_steps * RETRY_STEPS_FACTOR,
                                             tau_factor=options.sampler.tau_factor * RETRY_STEPS_FACTOR))
 
 
