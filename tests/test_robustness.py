@@ -65,6 +65,69 @@ def test_process_pool_keeps_submission_order_relays_reports_and_errors():
     assert make_executor(1).kind == "serial" and make_executor(3).kind == "processes"
 
 
+def _first(job, report=None):
+    value, delay = job
+    time.sleep(delay)
+    if report is not None:
+        report("first", value)
+    return value * 10
+
+
+def _then(job_and_first, report=None):
+    (value, _), first = job_and_first
+    if report is not None:
+        report("then", value)
+    if value < 0:
+        raise ValueError(f"then {value} failed")
+    return first + value, in_worker()
+
+
+def test_chained_tasks_run_second_after_first_with_its_result_on_every_executor():
+    jobs = [(v, 0.2 - 0.1 * v) for v in range(3)]
+    expected = [(0, (0, True)), (10, (11, True)), (20, (22, True))]
+    seen = []
+    with ProcessExecutor(2) as ex:
+        assert ex.map_chained(_first, _then, jobs, costs=[1, 3, 2], on_report=lambda *m: seen.append(m)) == expected
+        assert sorted(seen) == sorted([("first", v) for v in range(3)] + [("then", v) for v in range(3)])
+        with pytest.raises(ValueError, match="then -1 failed"):
+            ex.map_chained(_first, _then, [(1, 0.0), (-1, 0.0)])
+        assert ex.map_chained(_first, _then, [(5, 0.0)]) == [(50, (55, True))]   # usable after a failure
+    with DaskExecutor(workers=2) as ex:
+        assert ex.map_chained(_first, _then, jobs, on_report=lambda *m: None) == expected
+    serial = [(a, (b, False)) for a, (b, _) in expected]
+    assert Executor().map_chained(_first, _then, jobs) == serial
+
+
+def test_chained_tasks_hand_out_every_first_costliest_first_then_the_costliest_ready_second():
+    class Done:   # a task that has finished by the time the dispatcher looks
+        def __init__(self, value):
+            self.value = value
+
+        def done(self):
+            return True
+
+        def result(self):
+            return self.value
+
+    class Bar:
+        def update(self, n):
+            pass
+
+    launched = []
+
+    def launch(fn, item, index):
+        launched.append((fn.__name__, item if fn is _first else item[0]))
+        return Done(fn.__name__)
+
+    ex = Executor()
+    ex.workers = 2
+    items = ["D1", "M1", "D2", "L1"]
+    out = ex._chained_on_workers(launch, lambda: None, _first, _then, items, [1, 2, 1, 9], Bar())
+    assert out == [("_first", "_then")] * 4
+    assert launched == [("_first", "L1"), ("_first", "M1"), ("_first", "D1"), ("_first", "D2"),
+                        ("_then", "L1"), ("_then", "M1"), ("_then", "D1"), ("_then", "D2")]
+
+
 def test_monte_carlo_is_identical_on_every_executor():
     test = read_bundle(next(p for p in example_bundles() if p.name.startswith("main")))
     memo = hand_memo(MAIN_SPEC)

@@ -7,6 +7,7 @@ ensembles, a diagnosis' candidates, a campaign's tests, Monte Carlo batches)::
     with make_executor(workers=4, scheduler="local") as ex:   # a Dask LocalCluster
     with make_executor(scheduler="tcp://host:8786") as ex:    # a running Dask scheduler
         results = ex.map(task, items)
+        pairs = ex.map_chained(first, then, items)   # then((item, first(item))) once first is done
         later = ex.submit(task, item)    # starts now (in this process: when asked)
         ...                              # other work here meanwhile
         result = later.result()
@@ -44,12 +45,12 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 import sys
 import time
 
 from cpas_bayes.core.interrupts import raise_if_requested
 from cpas_bayes.core.scheduler_address import CONNECT_TIMEOUT, SCHEDULER_FIX
+from cpas_bayes.core.worker_process import call_reporting, in_worker, init_worker, limit_blas_threads
 
 
 def _cores():
@@ -60,23 +61,6 @@ def _cores():
 
 
 MAX_LOCAL_WORKERS = max(4, 2 * _cores())
-
-_BLAS_LIMIT = None  # keeps the threadpoolctl limiter alive in a worker
-_IN_WORKER = False  # set in worker processes: tasks started from a task run in it, one after another
-
-
-def limit_blas_threads():
-    """One BLAS/OpenMP/numba thread in this process (called in every worker)."""
-    global _BLAS_LIMIT, _IN_WORKER
-    _IN_WORKER = True
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
-    import numba
-    from threadpoolctl import threadpool_limits
-
-    _BLAS_LIMIT = threadpool_limits(limits=1)
-    numba.set_num_threads(1)  # the Monte Carlo kernel's prange: the workers are the parallelism
-
 
 class _OneThreadHere:
     """One BLAS and numba thread in *this* process while local workers share its cores.
@@ -114,88 +98,6 @@ class _OneThreadHere:
             self._numba = None
 
 
-_REPORTS = None  # in a pool worker: the queue that carries tasks' messages to the parent
-_REMOVE_TEMPORARIES = None  # in a pool worker: core.files.remove_temporaries, loaded before any signal comes
-
-
-def _end_worker(code):
-    """End this worker now: its temporary files removed, no clean-up of anything else (no orphan writes).
-
-    A second signal may arrive while this runs (SIGTERM from the parent and the
-    parent-death signal at once); whatever it raises, the process ends.
-    """
-    try:
-        if _REMOVE_TEMPORARIES is not None:
-            _REMOVE_TEMPORARIES()
-    finally:
-        os._exit(code)
-
-
-def _on_sigterm(signum, frame):
-    _end_worker(128 + signum)
-
-
-def _set_parent_death_signal(sig):
-    """Linux: the kernel sends ``sig`` to this process when its parent ends. Returns whether it is set."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        PR_SET_PDEATHSIG = 1
-        return libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
-    except (OSError, AttributeError):
-        return False
-
-
-def _watch_process(pid, interval=0.5):
-    """A daemon thread that ends this worker as soon as process ``pid`` (the one that started the pool) ends."""
-    import threading
-
-    try:
-        handle = os.pidfd_open(pid)  # Linux ≥ 5.3: readable once the process has ended; no pid reuse race
-    except ProcessLookupError:
-        _end_worker(1)
-    except (AttributeError, OSError):
-        handle = None
-
-    def alive():
-        try:
-            os.kill(pid, 0)
-            return True
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-
-    def watch():
-        if handle is not None:
-            import select
-
-            select.select([handle], [], [])
-        else:
-            while alive():
-                time.sleep(interval)
-        _end_worker(1)
-
-    threading.Thread(target=watch, name="cpas-bayes-parent-watch", daemon=True).start()
-
-
-def _process_worker_init(reports, owner_pid=None):
-    global _REPORTS, _REMOVE_TEMPORARIES
-    from cpas_bayes.core.files import remove_temporaries
-
-    _REPORTS, _REMOVE_TEMPORARIES = reports, remove_temporaries
-    # The parent handles Ctrl-C and terminates the pool; workers must not die mid-write on it.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, _on_sigterm)
-    _set_parent_death_signal(signal.SIGTERM)  # the fork server (or, with spawn, the owner) ending
-    if owner_pid is not None:
-        _watch_process(owner_pid)  # the owner ending (the fork server outlives it while workers run)
-    limit_blas_threads()
-
-
 def _progress_bar(total, desc, progress):
     from tqdm import tqdm
 
@@ -230,6 +132,56 @@ class Executor:
                 out.append(fn(item, on_report) if on_report is not None else fn(item))
                 bar.update(1)
         return out
+
+    def map_chained(self, first, then, items, costs=None, desc="tasks", progress=None, on_report=None):
+        """``[(a, then((item, a))) for item in items]`` with ``a = first(item)``: two tasks per item, the
+        second started once its item's first is done and given its result (``report`` as in :meth:`map`).
+
+        On workers every ``first`` is handed out, costliest first (``costs``, stable among equals), before
+        any ``then``; each ``then`` goes to the next free worker as soon as its ``first`` is done, the
+        costliest ready one first. A phase of whole items ends on one worker finishing the last item while
+        the rest idle; split in two, it ends on the shorter second tasks. Here: item after item.
+        """
+        items = list(items)
+        out = []
+        with _progress_bar(2 * len(items), desc, progress) as bar:
+            for item in items:
+                raise_if_requested()
+                a = first(item, on_report) if on_report is not None else first(item)
+                bar.update(1)
+                raise_if_requested()
+                out.append((a, then((item, a), on_report) if on_report is not None else then((item, a))))
+                bar.update(1)
+        return out
+
+    def _chained_on_workers(self, launch, wait_a_little, first, then, items, costs, bar):
+        """The dispatch of :meth:`map_chained` on ``self.workers`` workers; ``launch(fn, item, index)`` starts a
+        task and returns its future (``done()``, ``result()``), ``wait_a_little()`` idles briefly."""
+        n = len(items)
+        costs = [1.0] * n if costs is None else [float(c) for c in costs]
+        firsts = sorted(range(n), key=lambda i: -costs[i])[::-1]   # popped from the end: costliest first
+        ready, running, results = [], {}, [[None, None] for _ in range(n)]
+        while firsts or ready or running:
+            while len(running) < self.workers and (firsts or ready):
+                if firsts:
+                    i = firsts.pop()
+                    running[launch(first, items[i], 2 * i)] = (0, i)
+                else:
+                    i = max(ready, key=lambda j: costs[j])   # the first ready among equals
+                    ready.remove(i)
+                    running[launch(then, (items[i], results[i][0]), 2 * i + 1)] = (1, i)
+            finished = [f for f in running if f.done()]
+            if not finished:
+                wait_a_little()
+                raise_if_requested()
+                continue
+            for f in finished:
+                stage, i = running.pop(f)
+                results[i][stage] = f.result()   # a task's error stops the map here
+                if stage == 0:
+                    ready.append(i)
+                bar.update(1)
+        return [tuple(r) for r in results]
 
     def submit(self, fn, item):
         """Start ``fn(item)`` and return a handle whose ``result()`` waits for it. Here the task runs
@@ -283,17 +235,6 @@ class _Pending:
         except BaseException:
             self._on_failure(self._future)
             raise
-
-
-def _call_reporting(args):
-    """Run one task in a pool worker; its messages, then an end marker, go through the worker's queue."""
-    fn, item, index = args
-    if index is None:
-        return fn(item)
-    try:
-        return fn(item, lambda *message: _REPORTS.put((index, message)))
-    finally:
-        _REPORTS.put((index, None))  # after every message of this task (one queue, first in first out)
 
 
 def _call_without_reports(args):
@@ -361,7 +302,7 @@ class ProcessExecutor(Executor):
         if self._pool is None:
             self._not_ours = set(mp.active_children())
             self._reports = self._ctx.Queue()
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=self._ctx, initializer=_process_worker_init,
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=self._ctx, initializer=init_worker,
                                              initargs=(self._reports, os.getpid()))
         return self._pool
 
@@ -388,7 +329,7 @@ class ProcessExecutor(Executor):
         reporting = on_report is not None
         futures = []
         try:
-            futures = [pool.submit(_call_reporting, (fn, item, i if reporting else None))
+            futures = [pool.submit(call_reporting, (fn, item, i if reporting else None))
                        for i, item in enumerate(items)]
             open_tasks = set(range(len(items))) if reporting else set()
             with _progress_bar(len(items), desc, progress) as bar:
@@ -414,10 +355,41 @@ class ProcessExecutor(Executor):
             self._terminate()
             raise
 
+    def map_chained(self, first, then, items, costs=None, desc="tasks", progress=None, on_report=None):
+        items = list(items)
+        pool = self._ensure_pool()
+        reporting = on_report is not None
+        open_tasks, launched = set(), []
+
+        def launch(fn, item, index):
+            if reporting:
+                open_tasks.add(index)
+            launched.append(pool.submit(call_reporting, (fn, item, index if reporting else None)))
+            return launched[-1]
+
+        def wait_a_little():
+            if reporting:
+                self._drain(on_report, open_tasks, timeout=0.05)
+            else:
+                time.sleep(0.05)
+        try:
+            with _progress_bar(2 * len(items), desc, progress) as bar:
+                results = self._chained_on_workers(launch, wait_a_little, first, then, items, costs, bar)
+            while open_tasks:  # the last messages may still be in the queue's pipe
+                self._drain(on_report, open_tasks, timeout=1.0)
+            return results
+        except BaseException:
+            for f in launched:
+                f.cancel()
+            self._terminate()
+            raise
+
+    map_chained.__doc__ = Executor.map_chained.__doc__
+
     def submit(self, fn, item):
         """Start ``fn(item)`` on a worker now; ``result()`` of the handle waits for it (Ctrl-C or a failure
         stops the pool, as in :meth:`map`)."""
-        future = self._ensure_pool().submit(_call_reporting, (fn, item, None))
+        future = self._ensure_pool().submit(call_reporting, (fn, item, None))
         return _Pending(future, lambda f: (f.cancel(), self._terminate()))
 
     def _terminate(self):
@@ -505,6 +477,25 @@ class DaskExecutor(Executor):
             self.client.cancel(futures)
             raise
 
+    def map_chained(self, first, then, items, costs=None, desc="tasks", progress=None, on_report=None):
+        items = list(items)
+        launched = []
+
+        def launch(fn, item, index):
+            if on_report is not None:   # the cluster carries no messages back: the task gets None
+                launched.append(self.client.submit(_call_without_reports, (fn, item), pure=False))
+            else:
+                launched.append(self.client.submit(fn, item, pure=False))
+            return launched[-1]
+        try:
+            with _progress_bar(2 * len(items), desc, progress) as bar:
+                return self._chained_on_workers(launch, lambda: time.sleep(0.05), first, then, items, costs, bar)
+        except BaseException:
+            self.client.cancel(launched)
+            raise
+
+    map_chained.__doc__ = Executor.map_chained.__doc__
+
     def submit(self, fn, item):
         """Start ``fn(item)`` on the cluster now; ``result()`` of the handle waits for it."""
         return _Pending(self.client.submit(fn, item, pure=False), lambda f: self.client.cancel([f]))
@@ -518,21 +509,6 @@ class DaskExecutor(Executor):
         if self.cluster is not None:
             self.cluster.close()
             self._threads.restore()
-
-
-def in_worker() -> bool:
-    """True inside a task of a process pool or a Dask worker."""
-    import multiprocessing as mp
-
-    if _IN_WORKER or mp.current_process().daemon:
-        return True
-    if "distributed" in sys.modules:
-        try:
-            sys.modules["distributed"].get_worker()
-            return True
-        except ValueError:
-            return False
-    return False
 
 
 def make_executor(workers=1, scheduler=None) -> Executor:
