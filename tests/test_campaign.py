@@ -60,7 +60,7 @@ def test_configurations_are_named_by_kind_count_and_stages():
     assert cp.configuration_of(synthesize("main", "none", 1)[0]) == "3xmain-3st"
 
 
-def test_the_costliest_tests_are_handed_out_first_and_come_back_in_bundle_order():
+def test_a_tests_cost_ranks_logger_drops_over_mains_over_drogues():
     from cpas_bayes.data.synth import synthesize
     from cpas_bayes.data.synth_logger import synthesize_logger
 
@@ -68,19 +68,6 @@ def test_the_costliest_tests_are_handed_out_first_and_come_back_in_bundle_order(
     logger = synthesize_logger("logger-drop", 1)[0]
     # measured on the benchmark run: logger drop 70 s > three-Main 37 s > two-Drogue 15 s
     assert cp.test_cost(logger) > cp.test_cost(main_) > cp.test_cost(drogue)
-
-    class Recording:
-        handed = []
-
-        def map(self, fn, jobs, **kw):
-            self.handed = list(jobs)
-            return [fn(j) for j in jobs]
-
-    ex = Recording()
-    jobs = ["D1", "D2", "M1", "D3", "L1", "M2"]
-    costs = [1.0, 1.0, 2.0, 1.0, 9.0, 2.0]
-    assert cp.map_costliest_first(ex, str.lower, jobs, costs) == ["d1", "d2", "m1", "d3", "l1", "m2"]
-    assert ex.handed == ["L1", "M1", "M2", "D1", "D2", "D3"]      # costliest first, stable among equals
 
 
 QUICK = """
@@ -152,13 +139,15 @@ def test_a_campaign_runs_reruns_in_seconds_and_grows_by_one_fit(tmp_path):
     steps = json.loads((out / "campaign.json").read_text())["steps"]
     assert all(s["status"] == "cached" for s in steps)
 
-    # one test added: its own steps and the pooled ones run, the other tests' are kept
+    # one test added, run on two workers (fits and diagnoses as chained tasks): its own steps and the pooled
+    # ones run, the other tests' are kept (the number of workers is not part of a step's key)
     write_synthetic("drogue", "none", 34, folder / "T4")
-    assert main(["campaign", str(folder), "--out", str(out), "--config", str(config)]) == 0
+    assert main(["campaign", str(folder), "--out", str(out), "--config", str(config), "--workers", "2"]) == 0
     steps = {s["name"]: s["status"] for s in json.loads((out / "campaign.json").read_text())["steps"]}
     new = next(n for n in json.loads((out / "campaign.json").read_text())["tests"] if n not in names)
-    assert steps[f"{new} fit"] == "ran" and steps["pool"] == "ran"
+    assert steps[f"{new} fit"] == "ran" and steps[f"{new} diagnosis"] == "ran" and steps["pool"] == "ran"
     assert all(steps[f"{n} fit"] == "cached" and steps[f"{n} diagnosis"] == "cached" for n in names)
+    assert json.loads((out / "tests" / new / "diagnosis" / "diagnosis.json").read_text())["causes"] == []
 
 
 def test_a_bundle_is_keyed_by_what_is_read_of_it(tmp_path):

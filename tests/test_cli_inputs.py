@@ -24,6 +24,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cpas_bayes.app import campaign as cp
+from cpas_bayes.app.campaign_steps import load_baseline_fit
 from cpas_bayes.app import campaign_config as cfg
 from cpas_bayes.app.cli import main
 from cpas_bayes.core import resources
@@ -634,7 +635,7 @@ def test_a_campaign_refuses_its_damaged_fit_and_diagnosis_files(files, fresh):
     for text, where in (("{\"names\": [", "not valid JSON"), ("{\"names\": []}", "key 'names'")):
         (fit / "map.json").write_text(text)
         with pytest.raises(InputError) as err:
-            cp.load_baseline_fit(test, reduce_test(test), fit, cp.CampaignConfig())
+            load_baseline_fit(test, reduce_test(test), fit, cp.CampaignConfig())
         assert str(fit / "map.json") in str(err.value) and where in str(err.value)
         assert f"delete {fit}" in str(err.value)
     diagnosis = out / "tests" / "EX-drogue" / "diagnosis"

@@ -42,57 +42,28 @@ Layout of OUT::
 
 from __future__ import annotations
 
-import functools
-import hashlib
-import json
 import time as _time
 import unicodedata
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-import numpy as np
-
 from cpas_bayes import __version__
-from cpas_bayes.data.bundle import CSV_NAME, TOML_NAME, read_bundle
-from cpas_bayes.data.reduction import reduce_test
-from cpas_bayes.core.errors import InputError
-from cpas_bayes.core.inputs import read_json
-from cpas_bayes.stats.model_terms import EXTENSIONS
-from cpas_bayes.core.files import atomic_directory, write_json
-from cpas_bayes.core.inputs import inside
-from cpas_bayes.core.ownership import check_output, claim_folder
 from cpas_bayes.app.campaign_config import CampaignConfig
+from cpas_bayes.app.campaign_steps import (StepRecord, bundle_digest, collect, diagnosis_task, digest, fit_task,
+                                           folder_digest, pooled_step_task, run_step, test_cost, test_folder,
+                                           test_steps)
+from cpas_bayes.core.errors import InputError
+from cpas_bayes.core.files import write_json
+from cpas_bayes.core.inputs import inside, read_json
+from cpas_bayes.core.ownership import check_output, claim_folder
+from cpas_bayes.data.bundle import TOML_NAME, read_bundle
+from cpas_bayes.stats.model_terms import EXTENSIONS
 
 MEASUREMENT_CAUSES = ("friction_drift", "sensor_lag")
-STAMP = "stamp.json"
 
 
 # ---------------------------------------------------------------------------
-# hashing and steps
-
-
-def _digest(*parts) -> str:
-    h = hashlib.sha256()
-    for part in parts:
-        h.update(part if isinstance(part, bytes) else json.dumps(part, sort_keys=True, default=str).encode())
-        h.update(b"\0")
-    return h.hexdigest()[:20]
-
-
-def folder_digest(folder) -> str:
-    """Hash of every file's name and bytes in a folder (a bundle, a priors folder)."""
-    folder = Path(folder)
-    files = sorted(p for p in folder.rglob("*") if p.is_file() and not p.name.startswith("."))
-    return _digest(*[part for p in files for part in (str(p.relative_to(folder)), p.read_bytes())])
-
-
-def bundle_digest(folder, priors_files=()) -> str:
-    """Hash of what reading a bundle reads: its test.toml and data.csv, and the test's own prior files (which
-    may sit outside its folder). Other files in the folder (notes, a fit written inside it) leave it as it is:
-    hashing the whole folder re-ran a test's steps after each fit written there and read its 30 MB."""
-    folder = Path(folder)
-    return _digest(*[(folder / name).read_bytes() for name in (TOML_NAME, CSV_NAME)],
-                   *[Path(f).read_bytes() for f in priors_files])
+# hashing
 
 
 def priors_digest(config: CampaignConfig) -> str:
@@ -101,40 +72,7 @@ def priors_digest(config: CampaignConfig) -> str:
     parts = [folder_digest(PRIORS_DIR)]
     if config.priors:
         parts.append(Path(config.priors).read_bytes())
-    return _digest(*parts)
-
-
-@dataclass
-class StepRecord:
-    name: str
-    key: str
-    status: str                 # "ran" or "cached"
-    seconds: float
-    task_seconds: float | None = None   # a step that runs tasks of its own (the pool): their sum ...
-    tasks: int | None = None            # ... their count ...
-    longest_task_seconds: float | None = None   # ... and the longest, each timed where it ran
-
-
-def run_step(folder, key, work, records, name, echo):
-    """Run ``work(tmp)`` into a temporary folder renamed onto ``folder`` unless its stamp holds ``key``."""
-    folder = Path(folder)
-    stamp = folder / STAMP
-    if stamp.is_file():
-        try:
-            if json.loads(stamp.read_text(encoding="utf-8"))["key"] == key:
-                records.append(StepRecord(name, key, "cached", 0.0))
-                echo(f"  {name}: unchanged, kept")
-                return False
-        except (ValueError, KeyError, TypeError, OSError):   # a damaged stamp: the step runs again
-            pass
-    started = _time.perf_counter()
-    with atomic_directory(folder) as tmp:
-        work(Path(tmp))
-        write_json(Path(tmp) / STAMP, {"key": key, "version": __version__})
-    seconds = _time.perf_counter() - started
-    records.append(StepRecord(name, key, "ran", seconds))
-    echo(f"  {name}: done in {seconds:.0f} s")
-    return True
+    return digest(*parts)
 
 
 # ---------------------------------------------------------------------------
@@ -177,9 +115,6 @@ def validate_all(paths):
     return tests
 
 
-def test_folder(out, name, *parts):
-    """``OUT/tests/<name>/<parts>``, refused if the test's name would lead outside ``OUT/tests``."""
-    return inside(Path(out) / "tests", name).joinpath(*parts)
 def check_run_counts(tests, config, workers=1):
     """Refuse, before any step, Monte Carlo and comparison run counts beyond :mod:`cpas_bayes.loads.budget`'s
     limits for these tests' configurations, with ``workers`` pooled steps side by side."""
@@ -204,189 +139,6 @@ def configuration_of(test) -> str:
     for p in test.parachutes:
         kinds.setdefault(p.kind, []).append(len(p.stages))
     return "+".join(f"{len(v)}x{k}-{max(v)}st" for k, v in sorted(kinds.items()))
-
-
-LOGGER_COST = 13   # a logger bundle's fit and diagnosis per stage, in units of a q̄ bundle's (Measured figures)
-
-
-def test_cost(test) -> float:
-    """A test's relative cost of fit and diagnosis, to hand out the costliest first: its stages and canopies
-    (the parameters grow with them), times :data:`LOGGER_COST` without a q̄ channel. On the benchmark run
-    the two-Drogue example took 15 s (6 units: 2.6 s each), the three-Main 37 s (12: 3.1 s), a one-canopy
-    logger drop 70 s (2: 35 s)."""
-    units = sum(len(p.stages) + 1 for p in test.parachutes)
-    return float(units * (1 if test.measured_qbar else LOGGER_COST))
-
-
-def map_costliest_first(executor, fn, jobs, costs, **kwargs):
-    """``executor.map(fn, jobs)`` with the jobs handed out costliest first (stable among equals), the results
-    in the jobs' order: a phase then ends on short tasks instead of one worker on a Main while the rest idle."""
-    order = sorted(range(len(jobs)), key=lambda i: -costs[i])
-    ran = executor.map(fn, [jobs[i] for i in order], **kwargs)
-    results = [None] * len(jobs)
-    for i, r in zip(order, ran):
-        results[i] = r
-    return results
-
-
-# ---------------------------------------------------------------------------
-# per-test steps
-
-
-def _reduce_work(reduced):
-    def work(tmp):
-        from cpas_bayes.outputs.reduction import write_reduction
-
-        write_reduction(reduced(), tmp)
-    return work
-
-
-def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
-    def work(tmp):
-        from cpas_bayes.inference.predictive_checks import check_report, run_checks
-        from cpas_bayes.inference.fit import fit_model, prepare_model
-        from cpas_bayes.inference.fit_folder import record_checks
-        from cpas_bayes.outputs.plots.fit import write_fit_figures
-
-        model = prepare_model(test, reduced(), priors=config.priors, decay=config.decay,
-                              below_previous=config.below_previous)
-        fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint,
-                        executor=executor)
-        found = {}
-
-        def checks():   # run while the workers draw the figures that need none
-            found["checks"] = run_checks(fit, rng=config.seed)
-            found["warnings"] = record_checks(fit, found["checks"], tmp)
-            write_json(tmp / "checks.json", check_report(fit, checks=found["checks"]))
-            return found["checks"]
-
-        write_fit_figures(fit, tmp, checks=checks, executor=executor)
-        warnings = found["warnings"]
-        write_json(tmp / "map.json", {"names": list(model.names),
-                                      "theta": [float(v) for v in fit.sampling.theta_map],
-                                      "log_posterior": float(fit.sampling.log_post_map)})
-        d = fit.summary["diagnostics"]
-        echo(f"    {test.name}: R-hat max {d['rhat_max']:.3f}, ESS bulk min {d['ess_bulk_min']:.0f}"
-             + (f", {len(warnings)} fit health warning(s)" if warnings else ""))
-    return work
-
-
-def load_baseline_fit(test, reduction, folder, config):
-    """The baseline fit of a test from its fit folder (model rebuilt from ``reduction``, MAP from map.json)."""
-    from cpas_bayes.inference.fit import Fit, SamplingResult, prepare_model
-    from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, load_datatree, read_summary
-
-    folder = Path(folder)
-    model = prepare_model(test, reduction, priors=config.priors, decay=config.decay,
-                          below_previous=config.below_previous)
-    fix = f"delete {folder} so that the campaign refits the test, and re-run the campaign"
-    m = read_json(folder / "map.json", fix, what="MAP file")
-    theta, lp = m.get("theta"), m.get("log_posterior")
-    if m.get("names") != list(model.names):
-        raise InputError(folder / "map.json", "key 'names'", "does not match the model's parameters", fix)
-    if (not isinstance(theta, list) or len(theta) != len(model.names)
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in theta)):
-        raise InputError(folder / "map.json", "key 'theta'", f"not {len(model.names)} finite numbers", fix)
-    if isinstance(lp, bool) or not isinstance(lp, (int, float)):
-        raise InputError(folder / "map.json", "key 'log_posterior'", "missing or not a number", fix)
-    sampling = SamplingResult(names=list(model.names), runs=[], theta_map=np.array(theta, float),
-                              log_post_map=float(lp), options=config.sampler())
-    summary = read_summary(folder)
-    return Fit(model, sampling, load_datatree(folder / POSTERIOR_NAME), summary)
-
-
-def _diagnose_work(test, reduced, config, fit_folder, echo, executor=None):
-    def work(tmp):
-        from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER, DiagnoseOptions
-        from cpas_bayes.inference.diagnose import diagnose_test
-        from cpas_bayes.outputs.diagnosis import write_diagnosis
-        from cpas_bayes.inference.fit_folder import POSTERIOR_NAME, build_summary, convergence, save_datatree, write_summary
-
-        fit = load_baseline_fit(test, reduced(), fit_folder, config)
-        options = DiagnoseOptions(seed=config.seed, candidates=tuple(config.candidates), priors=config.priors,
-                                  decay=config.decay, below_previous=config.below_previous, mode=config.diagnose,
-                                  model_forms=config.model_forms,
-                                  sampler=replace(DIAGNOSIS_SAMPLER, workers=config.workers, progress=False))
-        d = diagnose_test(test, options, reduction=reduced(), baseline_fit=fit, echo=lambda m: echo("    " + m), executor=executor)
-        write_diagnosis(d, tmp)
-        if d.named_fit is not None:  # the named terms together, without the discrepancy
-            named = d.named_fit.fit
-            ext = tmp / "extended"
-            save_datatree(named.tree, ext / POSTERIOR_NAME)
-            write_summary(ext, build_summary(named.model, named.tree, convergence(named.tree, named.sampling),
-                                             named.sampling.options))
-        echo(f"    {test.name}: {d.verdict}: {', '.join(d.causes) or 'none'}")
-    return work
-
-
-def _compare_work(test, memo_folder, fit_folder, config):
-    def work(tmp):
-        from cpas_bayes.loads.compare import compare_loads
-        from cpas_bayes.outputs.compare import write_comparison
-        from cpas_bayes.population.memo import load_memo
-        from cpas_bayes.inference.fit_folder import load_fit
-
-        comparison = compare_loads(test, load_memo(memo_folder), load_fit(fit_folder), runs=config.compare_runs,
-                                   rng=np.random.default_rng([config.seed, 11]))
-        write_comparison(comparison, tmp)
-    return work
-
-
-def _montecarlo_work(like, memo_folder, config):
-    def work(tmp):
-        from cpas_bayes.population.memo import load_memo
-        from cpas_bayes.loads.fill_time import compare_fill_time_dispersion
-        from cpas_bayes.loads.montecarlo import run_monte_carlo
-        from cpas_bayes.outputs.montecarlo import write_fill_time_comparison, write_monte_carlo
-
-        memo = load_memo(memo_folder)
-        result = run_monte_carlo(memo, like, config.montecarlo_runs, np.random.default_rng([config.seed, 21]))
-        write_monte_carlo(result, tmp, memo, extra={"like": like.name, "seed": config.seed})
-        comparison = compare_fill_time_dispersion(memo, like, config.montecarlo_runs,
-                                                  np.random.default_rng([config.seed, 22]))
-        write_fill_time_comparison(comparison, tmp, extra={"like": like.name, "seed": config.seed})
-    return work
-
-
-# ---------------------------------------------------------------------------
-# tasks: what one worker does (top-level functions, so any executor can ship them)
-
-
-def _test_task(job, report=None, executor=None):
-    """Reduce, fit and diagnose one test; returns its step records and the messages not yet shown."""
-    test, config, out, bundle_key, fit_key, diag_key = job
-    log = []
-    echo = report if report is not None else log.append
-    records = []
-    base = test_folder(out, test.name)
-    reduced = functools.cache(lambda: reduce_test(test))  # once per run, only if a step is not up to date
-    echo(f"{test.name}:")
-    run_step(base / "reduction", bundle_key, _reduce_work(reduced), records, f"{test.name} reduction", echo)
-    run_step(base / "fit", fit_key,
-             _fit_work(test, reduced, config, inside(out / ".checkpoints", test.name), echo, executor),
-             records, f"{test.name} fit", echo)
-    if diag_key is not None:
-        run_step(base / "diagnosis", diag_key, _diagnose_work(test, reduced, config, base / "fit", echo, executor),
-                 records, f"{test.name} diagnosis", echo)
-    return records, log
-
-
-def _pooled_step_task(job, report=None):
-    """A Monte Carlo of one configuration or the load comparison of one test (after the memo)."""
-    kind, folder, key, name, args = job
-    work = _montecarlo_work(*args) if kind == "montecarlo" else _compare_work(*args)
-    log = []
-    records = []
-    run_step(folder, key, work, records, name, report if report is not None else log.append)
-    return records, log
-
-
-def _collect(results, records, echo):
-    """Add the tasks' step records in task order; show the messages they could not send as they ran."""
-    for recs, log in results:
-        records.extend(recs)
-        for message in log:
-            echo(message)
 
 
 # ---------------------------------------------------------------------------
@@ -527,7 +279,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     fit_keys, diag_keys = {}, {}
     jobs = []
     for path, test in zip(paths, tests):
-        bundle_key = _digest(bundle_digest(path, test.priors_files), __version__)
+        bundle_key = digest(bundle_digest(path, test.priors_files), __version__)
         fit_opts = {k: options[k] for k in ("seed", "decay", "fit_ensembles", "fit_max_steps", "fit_tau_factor",
                                             "fit_check_every")}
         if config.below_previous != CampaignConfig.below_previous:   # keyed only when set: default keys unchanged
@@ -538,21 +290,23 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
                 fit_opts["fit_proposal"] = config.fit_proposal
         if config.fit_coordinates != "model":   # fits sampled in θ as written, the only way before, keep their keys
             fit_opts["fit_coordinates"] = config.fit_coordinates
-        fit_keys[test.name] = _digest(bundle_key, prior_key, fit_opts)
+        fit_keys[test.name] = digest(bundle_key, prior_key, fit_opts)
         if config.diagnose != "off":
-            diag_keys[test.name] = _digest(fit_keys[test.name], config.diagnose, list(config.candidates))
+            diag_keys[test.name] = digest(fit_keys[test.name], config.diagnose, list(config.candidates))
         jobs.append((test, config, out, bundle_key, fit_keys[test.name], diag_keys.get(test.name)))
     if executor.workers > 1 and len(jobs) >= executor.workers:
-        results = map_costliest_first(executor, _test_task, jobs, [test_cost(j[0]) for j in jobs], desc="tests",
-                                      on_report=echo)
+        # fits first, each diagnosis once its fit is done: the phase ends on diagnoses, not on whole tests
+        results = executor.map_chained(fit_task, diagnosis_task, jobs, [test_cost(j[0]) for j in jobs],
+                                       desc="tests", on_report=echo)
+        results = [(fitted[0] + diagnosed[0], fitted[1] + diagnosed[1]) for fitted, diagnosed in results]
     else:  # fewer tests than workers: one test at a time, each fit's ensembles side by side
-        results = [_test_task(job, echo, executor) for job in jobs]
-    _collect(results, records, echo)
+        results = [test_steps(job, echo, executor) for job in jobs]
+    collect(results, records, echo)
     causes = {test.name: diagnosed_causes(out, test.name) for test in tests}
     flags = {test.name: pool_flags(out, test.name) for test in tests}
 
     pool_sources = {t.name: pooled_fit_folder(out, t.name) for t in tests}
-    pool_key = _digest(sorted(fit_keys.items()), sorted(diag_keys.items()), config.pool_draws, config.seed)
+    pool_key = digest(sorted(fit_keys.items()), sorted(diag_keys.items()), config.pool_draws, config.seed)
 
     clock = TaskClock(executor)   # what the pool spends in its own tasks can spread over workers
 
@@ -563,7 +317,8 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
         result = pool_folders([pool_sources[t.name] for t in tests], seed=config.seed, n_draws=config.pool_draws,
                               executor=clock)
         write_pool(result, tmp, provenance={"campaign": str(folder), "tests": [t.name for t in tests],
-                                            "fits": {k: str(v.relative_to(out)) for k, v in pool_sources.items()}})
+                                            "fits": {k: str(v.relative_to(out)) for k, v in pool_sources.items()}},
+                   executor=clock)
     echo("memo:")
     if run_step(out / "memo", pool_key, pool_work, records, "pool", echo) and clock.seconds:
         records[-1] = replace(records[-1], task_seconds=sum(clock.seconds), tasks=len(clock.seconds),
@@ -572,14 +327,14 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     echo("Monte Carlo and load comparisons:")
     jobs = []
     for name, (path, like) in configs.items():
-        key = _digest(pool_key, bundle_digest(path), config.montecarlo_runs, config.seed)
+        key = digest(pool_key, bundle_digest(path), config.montecarlo_runs, config.seed)
         jobs.append(("montecarlo", inside(out / "montecarlo", name), key,
                      f"Monte Carlo {name} ({config.montecarlo_runs} runs)", (like, out / "memo", config)))
     for test in tests:
-        key = _digest(pool_key, fit_keys[test.name], config.compare_runs, config.seed)
+        key = digest(pool_key, fit_keys[test.name], config.compare_runs, config.seed)
         jobs.append(("compare", test_folder(out, test.name, "compare"), key, f"{test.name} load comparison",
                      (test, out / "memo", test_folder(out, test.name, "fit"), config)))
-    _collect(executor.map(_pooled_step_task, jobs, desc="steps", on_report=echo), records, echo)
+    collect(executor.map(pooled_step_task, jobs, desc="steps", on_report=echo), records, echo)
     seconds = _time.perf_counter() - started
     manifest = {"campaign": config.name or Path(folder).name, "folder": str(folder), "version": __version__,
                 "config": options, "tests": [t.name for t in tests],
