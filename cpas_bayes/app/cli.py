@@ -440,7 +440,7 @@ def compare_command(bundle, memo_path, fit_path, out, runs, seed, mode, independ
 @click.argument("fitdirs", nargs=-1, required=True, type=click.Path(path_type=Path), callback=check_fit_folders)
 @out_option("Memo folder: memo.toml, memo_draws.csv, memo.md and figures.", required=True)
 @seed_option("Seed of the subsampling, hyper-posterior and population-predictive draws.")
-@parallel_options(what="fit-folder loads and kind/stage/parameter selections")
+@parallel_options(what="fit-folder loads, kind/stage/parameter selections and figures")
 def pool_command(fitdirs, out, seed, workers, scheduler):
     """Pool fitted tests into population dispersions: the model memo.
 
@@ -459,7 +459,7 @@ def pool_command(fitdirs, out, seed, workers, scheduler):
         warnings.simplefilter("always", PoolWarning)
         with _executor(workers, scheduler) as executor:
             result = pool_folders(fitdirs, seed=seed, executor=executor)
-        paths = write_pool(result, out)
+            paths = write_pool(result, out, executor=executor)
     for w in caught:
         if issubclass(w.category, PoolWarning):
             click.secho(f"warning: {w.message}", fg="yellow", err=True)

@@ -74,12 +74,13 @@ def memo_markdown(result: PoolResult, provenance=None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_pool(result: PoolResult, out, provenance=None):
-    """Write memo.toml, memo_draws.csv, memo.md and the forest plots into ``out``; return the paths."""
+def write_pool(result: PoolResult, out, provenance=None, executor=None):
+    """Write memo.toml, memo_draws.csv, memo.md and the forest plots into ``out``; return the paths.
+    ``executor`` draws the figures as tasks (:func:`~cpas_bayes.outputs.plots.pool.write_pool_figures`)."""
     out = claim_folder(out)
     memo = result.to_memo(provenance)
     memo_path = memo.write(out)
     md = out / "memo.md"
     write_text(md, memo_markdown(result, memo.provenance))
-    figures = write_pool_figures(result, out)
+    figures = write_pool_figures(result, out, executor=executor)
     return {"memo": memo_path, "draws": out / "memo_draws.csv", "markdown": md, "figures": figures}

@@ -102,17 +102,36 @@ def plot_pair(result, kind, stage):
     return fig
 
 
-def write_pool_figures(result, out):
-    """Forest plots per kind and stage (``pool_<kind>_<stage>.png``) and pair plots; returns the paths."""
-    paths = []
-    keys = sorted({(k, s) for k, s, _ in result.entries})
-    for kind, stage in keys:
-        for name, maker in (("pool", plot_forest), ("pair", plot_pair)):
-            fig = maker(result, kind, stage)
-            if fig is None:
-                continue
-            path = inside(out, f"{name}_{kind}_{stage}.png")
-            save_figure(fig, path, dpi=110)
-            plt.close(fig)
-            paths.append(path)
-    return paths
+class _Part:
+    """The entries and pair of one kind and stage: what its two figures read of a pool's result, shipped
+    to a worker without the rest (the draws, the other stages)."""
+
+    def __init__(self, result, kind, stage):
+        self.entries = {k: e for k, e in result.entries.items() if k[:2] == (kind, stage)}
+        self.pairs = {k: p for k, p in result.pairs.items() if k == (kind, stage)}
+
+
+def _draw_pool_figure(job):
+    """Task: draw one figure (``"pool"`` forest or ``"pair"``) into ``path``; the path, or None if it has nothing to show."""
+    name, kind, stage, part, path = job
+    fig = (plot_forest if name == "pool" else plot_pair)(part, kind, stage)
+    if fig is None:
+        return None
+    save_figure(fig, path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_pool_figures(result, out, executor=None):
+    """Forest plots per kind and stage (``pool_<kind>_<stage>.png``) and pair plots; returns the paths.
+
+    ``executor`` (:mod:`cpas_bayes.core.executor`) draws them as tasks: with fifty tests a forest plot
+    takes a second or more, and drawn one after another they were the pool step's largest serial part."""
+    from cpas_bayes.core.executor import Executor
+
+    jobs = []
+    for kind, stage in sorted({(k, s) for k, s, _ in result.entries}):
+        part = _Part(result, kind, stage)
+        jobs += [(name, kind, stage, part, inside(out, f"{name}_{kind}_{stage}.png")) for name in ("pool", "pair")]
+    drawn = (executor or Executor()).map(_draw_pool_figure, jobs, desc="figures", progress=False)
+    return [path for path in drawn if path is not None]
