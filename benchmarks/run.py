@@ -178,11 +178,33 @@ def makespan(durations, workers):
     return max(free)
 
 
+def chained_makespan(firsts, thens, workers):
+    """Wall time of two tasks per item dispatched as ``Executor.map_chained`` does with equal costs: every
+    first task in order to the first free worker, then each second task, in the order its first finished."""
+    import heapq
+
+    free = [(0.0, w) for w in range(max(1, workers))]   # (when the worker is free, which)
+    ready = []                                           # (when a second task may start, item)
+    end = 0.0
+    for i, d in enumerate(firsts):
+        t, w = heapq.heappop(free)
+        heapq.heappush(free, (t + d, w))
+        heapq.heappush(ready, (t + d, i))
+    while ready:
+        t_ready, i = heapq.heappop(ready)
+        t, w = heapq.heappop(free)
+        start = max(t, t_ready)
+        heapq.heappush(free, (start + thens[i], w))
+        end = max(end, start + thens[i])
+    return max([end] + [t for t, _ in free])
+
+
 def amdahl(steps, wall, workers):
     """Serial part and predicted efficiency from a campaign's step records (campaign.json "steps").
 
-    The campaign runs in three phases, each a set of tasks on the workers: the tests (each its reduction,
-    fit and diagnosis in one task), the pool (its own tasks, ``task_seconds``, with the rest of the pool step
+    The campaign runs in three phases, each a set of tasks on the workers: the tests (each its reduction
+    and fit in one task, its diagnosis in a second started once the first is done: :func:`chained_makespan`),
+    the pool (its own tasks, ``task_seconds``, with the rest of the pool step
     in the calling process), and the Monte Carlo and load comparisons. Each phase's wall time on N workers
     is predicted by handing its measured task times, in the campaign's order, to the first free worker
     (:func:`makespan`), so the imbalance at the end of a phase is predicted for N workers rather than
@@ -192,7 +214,8 @@ def amdahl(steps, wall, workers):
     efficiency T(1)/(N·T(N)). ``conservative``: the law as first reported here, T(N) = S' + max(W/N,
     longest test) with the whole pool step and the measured phases' imbalance counted as serial.
     """
-    tests, after, pooled, pool_tasks, pool_serial, pool_longest = {}, [], 0.0, 0.0, 0.0, 0.0
+    tests, fits, diagnoses, after = {}, {}, {}, []
+    pooled, pool_tasks, pool_serial, pool_longest = 0.0, 0.0, 0.0, 0.0
     n_pool_tasks = 0
     for r in steps:
         if r["name"] == "pool":
@@ -203,8 +226,10 @@ def amdahl(steps, wall, workers):
             pool_longest = max(pool_longest, r.get("longest_task_seconds") or 0.0)
             pool_serial += max(0.0, r["seconds"] - work / workers)
         elif r["name"].endswith((" reduction", " fit", " diagnosis")):
-            test = r["name"].rsplit(" ", 1)[0]
+            test, step = r["name"].rsplit(" ", 1)
             tests[test] = tests.get(test, 0.0) + r["seconds"]
+            part = diagnoses if step == "diagnosis" else fits
+            part[test] = part.get(test, 0.0) + r["seconds"]
         else:
             after.append(r["seconds"])
 
@@ -212,7 +237,9 @@ def amdahl(steps, wall, workers):
         return max(pool_tasks / n, pool_longest) if n_pool_tasks else 0.0
 
     def phases(n):
-        return makespan(list(tests.values()), n) + pool_span(n) + makespan(after, n)
+        names = list(tests)
+        return (chained_makespan([fits.get(t, 0.0) for t in names], [diagnoses.get(t, 0.0) for t in names], n)
+                + pool_span(n) + makespan(after, n))
 
     work = sum(tests.values()) + sum(after) + pool_tasks
     serial = pool_serial + max(0.0, wall - pool_serial - phases(workers))
