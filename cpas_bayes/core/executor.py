@@ -319,6 +319,16 @@ class ProcessExecutor(Executor):
             else:
                 on_report(*message)
 
+    def _drain_to_the_end(self, on_report, open_tasks):
+        while open_tasks:  # the last messages may still be in the queue's pipe
+            self._drain(on_report, open_tasks, timeout=1.0)
+
+    def _stop(self, futures):
+        """Ctrl-C or a failed task: stop the rest now; their checkpoints are complete files."""
+        for f in futures:
+            f.cancel()
+        self._terminate()
+
     def map(self, fn, items, desc="tasks", progress=None, on_report=None):
         from concurrent.futures import FIRST_EXCEPTION, wait
 
@@ -345,14 +355,10 @@ class ProcessExecutor(Executor):
                     bar.update(len(finished) - done)
                     done = len(finished)
             results = [f.result() for f in futures]
-            while open_tasks:  # the last messages may still be in the queue's pipe
-                self._drain(on_report, open_tasks, timeout=1.0)
+            self._drain_to_the_end(on_report, open_tasks)
             return results
         except BaseException:
-            # Ctrl-C or a failed task: stop the rest now; their checkpoints are complete files.
-            for f in futures:
-                f.cancel()
-            self._terminate()
+            self._stop(futures)
             raise
 
     def map_chained(self, first, then, items, costs=None, desc="tasks", progress=None, on_report=None):
@@ -375,13 +381,10 @@ class ProcessExecutor(Executor):
         try:
             with _progress_bar(2 * len(items), desc, progress) as bar:
                 results = self._chained_on_workers(launch, wait_a_little, first, then, items, costs, bar)
-            while open_tasks:  # the last messages may still be in the queue's pipe
-                self._drain(on_report, open_tasks, timeout=1.0)
+            self._drain_to_the_end(on_report, open_tasks)
             return results
         except BaseException:
-            for f in launched:
-                f.cancel()
-            self._terminate()
+            self._stop(launched)
             raise
 
     map_chained.__doc__ = Executor.map_chained.__doc__
