@@ -179,31 +179,44 @@ def makespan(durations, workers):
 
 
 def chained_makespan(firsts, thens, workers):
-    """Wall time of two tasks per item dispatched as ``Executor.map_chained`` does with equal costs: every
-    first task in order to the first free worker, then each second task, in the order its first finished."""
+    """Wall time of chained tasks dispatched as ``Executor.map_chained`` does with equal costs: every first
+    task, in order, to the first free worker; then, whenever a worker is free, the ready task of the
+    highest-priority later kind, in the order the firsts finished. ``thens``: per later kind (in priority
+    order) the items' durations."""
     import heapq
+    from collections import deque
 
-    free = [(0.0, w) for w in range(max(1, workers))]   # (when the worker is free, which)
-    ready = []                                           # (when a second task may start, item)
-    end = 0.0
-    for i, d in enumerate(firsts):
-        t, w = heapq.heappop(free)
-        heapq.heappush(free, (t + d, w))
-        heapq.heappush(ready, (t + d, i))
-    while ready:
-        t_ready, i = heapq.heappop(ready)
-        t, w = heapq.heappop(free)
-        start = max(t, t_ready)
-        heapq.heappush(free, (start + thens[i], w))
-        end = max(end, start + thens[i])
-    return max([end] + [t for t, _ in free])
+    n = len(firsts)
+    ready = [deque() for _ in thens]
+    running, idle, now, end, next_first, seq = [], max(1, workers), 0.0, 0.0, 0, 0
+    while True:
+        while idle and (next_first < n or any(ready)):
+            if next_first < n:
+                stage, i, next_first = 0, next_first, next_first + 1
+                took = firsts[i]
+            else:
+                k = next(k for k, r in enumerate(ready) if r)
+                stage, i = 1 + k, ready[k].popleft()
+                took = thens[k][i]
+            heapq.heappush(running, (now + took, seq, stage, i))
+            seq += 1
+            idle -= 1
+        if not running:
+            return end
+        now, _, stage, i = heapq.heappop(running)
+        end = max(end, now)
+        idle += 1
+        if stage == 0:
+            for r in ready:
+                r.append(i)
 
 
 def amdahl(steps, wall, workers):
     """Serial part and predicted efficiency from a campaign's step records (campaign.json "steps").
 
     The campaign runs in three phases, each a set of tasks on the workers: the tests (each its reduction
-    and fit in one task, its diagnosis in a second started once the first is done: :func:`chained_makespan`),
+    and fit in one task, its diagnosis in a second and the fit's draw figures in a third, both started once
+    the first is done, the figures last: :func:`chained_makespan`),
     the pool (its own tasks, ``task_seconds``, with the rest of the pool step
     in the calling process), and the Monte Carlo and load comparisons. Each phase's wall time on N workers
     is predicted by handing its measured task times, in the campaign's order, to the first free worker
@@ -214,7 +227,7 @@ def amdahl(steps, wall, workers):
     efficiency T(1)/(N·T(N)). ``conservative``: the law as first reported here, T(N) = S' + max(W/N,
     longest test) with the whole pool step and the measured phases' imbalance counted as serial.
     """
-    tests, fits, diagnoses, after = {}, {}, {}, []
+    tests, fits, diagnoses, figures, after = {}, {}, {}, {}, []
     pooled, pool_tasks, pool_serial, pool_longest = 0.0, 0.0, 0.0, 0.0
     n_pool_tasks = 0
     for r in steps:
@@ -225,10 +238,10 @@ def amdahl(steps, wall, workers):
             n_pool_tasks += r.get("tasks") or 0
             pool_longest = max(pool_longest, r.get("longest_task_seconds") or 0.0)
             pool_serial += max(0.0, r["seconds"] - work / workers)
-        elif r["name"].endswith((" reduction", " fit", " diagnosis")):
+        elif r["name"].endswith((" reduction", " fit", " diagnosis", " figures")):
             test, step = r["name"].rsplit(" ", 1)
             tests[test] = tests.get(test, 0.0) + r["seconds"]
-            part = diagnoses if step == "diagnosis" else fits
+            part = {"diagnosis": diagnoses, "figures": figures}.get(step, fits)
             part[test] = part.get(test, 0.0) + r["seconds"]
         else:
             after.append(r["seconds"])
@@ -238,7 +251,8 @@ def amdahl(steps, wall, workers):
 
     def phases(n):
         names = list(tests)
-        return (chained_makespan([fits.get(t, 0.0) for t in names], [diagnoses.get(t, 0.0) for t in names], n)
+        later = [[diagnoses.get(t, 0.0) for t in names], [figures.get(t, 0.0) for t in names]]
+        return (chained_makespan([fits.get(t, 0.0) for t in names], later, n)
                 + pool_span(n) + makespan(after, n))
 
     work = sum(tests.values()) + sum(after) + pool_tasks

@@ -128,6 +128,46 @@ def test_chained_tasks_hand_out_every_first_costliest_first_then_the_costliest_r
                         ("_then", "L1"), ("_then", "M1"), ("_then", "D1"), ("_then", "D2")]
 
 
+def _last(job_and_first, report=None):
+    (value, _), first = job_and_first
+    return -first
+
+
+def test_chained_tasks_of_lower_priority_go_last_and_come_back_beside_the_others():
+    class Done:
+        def __init__(self, value):
+            self.value = value
+
+        def done(self):
+            return True
+
+        def result(self):
+            return self.value
+
+    class Bar:
+        def update(self, n):
+            pass
+
+    launched = []
+
+    def launch(fn, item, index):
+        launched.append((fn.__name__, item if fn is _first else item[0], index))
+        return Done(fn.__name__)
+
+    ex = Executor()
+    ex.workers = 3
+    out = ex._chained_on_workers(launch, lambda: None, _first, (_then, _last), ["A", "B"], [1, 2], Bar())
+    assert out == [("_first", "_then", "_last")] * 2
+    assert launched == [("_first", "B", 3), ("_first", "A", 0), ("_then", "B", 4), ("_then", "A", 1),
+                        ("_last", "B", 5), ("_last", "A", 2)]
+    jobs = [(1, 0.0), (2, 0.0)]
+    expected = [(10, (11, False), -10), (20, (22, False), -20)]
+    assert Executor().map_chained(_first, (_then, _last), jobs) == expected
+    with ProcessExecutor(2) as pool:
+        assert pool.map_chained(_first, (_then, _last), jobs, on_report=lambda *m: None) == [
+            (a, (b, True), c) for a, (b, _), c in expected]
+
+
 def test_monte_carlo_is_identical_on_every_executor():
     test = read_bundle(next(p for p in example_bundles() if p.name.startswith("main")))
     memo = hand_memo(MAIN_SPEC)

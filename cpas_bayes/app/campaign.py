@@ -49,9 +49,9 @@ from pathlib import Path
 
 from cpas_bayes import __version__
 from cpas_bayes.app.campaign_config import CampaignConfig
-from cpas_bayes.app.campaign_steps import (StepRecord, bundle_digest, collect, diagnosis_task, digest, fit_task,
-                                           folder_digest, pooled_step_task, run_step, test_cost, test_folder,
-                                           test_steps)
+from cpas_bayes.app.campaign_steps import (StepRecord, bundle_digest, collect, diagnosis_task, digest, figures_task,
+                                           fit_task, folder_digest, pooled_step_task, run_step, test_cost,
+                                           test_folder, test_steps)
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import write_json
 from cpas_bayes.core.inputs import inside, read_json
@@ -295,10 +295,11 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
             diag_keys[test.name] = digest(fit_keys[test.name], config.diagnose, list(config.candidates))
         jobs.append((test, config, out, bundle_key, fit_keys[test.name], diag_keys.get(test.name)))
     if executor.workers > 1 and len(jobs) >= executor.workers:
-        # fits first, each diagnosis once its fit is done: the phase ends on diagnoses, not on whole tests
-        results = executor.map_chained(fit_task, diagnosis_task, jobs, [test_cost(j[0]) for j in jobs],
-                                       desc="tests", on_report=echo)
-        results = [(fitted[0] + diagnosed[0], fitted[1] + diagnosed[1]) for fitted, diagnosed in results]
+        # fits first, each diagnosis once its fit is done, the fits' draw figures last: the phase ends on
+        # small figure tasks, not on whole tests
+        results = executor.map_chained(fit_task, (diagnosis_task, figures_task), jobs,
+                                       [test_cost(j[0]) for j in jobs], desc="tests", on_report=echo)
+        results = [tuple(sum((r[k] for r in rows), []) for k in (0, 1)) for rows in results]
     else:  # fewer tests than workers: one test at a time, each fit's ensembles side by side
         results = [test_steps(job, echo, executor) for job in jobs]
     collect(results, records, echo)

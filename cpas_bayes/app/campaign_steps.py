@@ -68,18 +68,21 @@ class StepRecord:
     longest_task_seconds: float | None = None   # ... and the longest, each timed where it ran
 
 
+def _stamped(stamp, key):
+    """Whether the stamp file ``stamp`` holds ``key`` (a missing or damaged stamp: no, the step runs again)."""
+    try:
+        return stamp.is_file() and json.loads(stamp.read_text(encoding="utf-8"))["key"] == key
+    except (ValueError, KeyError, TypeError, OSError):
+        return False
+
+
 def run_step(folder, key, work, records, name, echo):
     """Run ``work(tmp)`` into a temporary folder renamed onto ``folder`` unless its stamp holds ``key``."""
     folder = Path(folder)
-    stamp = folder / STAMP
-    if stamp.is_file():
-        try:
-            if json.loads(stamp.read_text(encoding="utf-8"))["key"] == key:
-                records.append(StepRecord(name, key, "cached", 0.0))
-                echo(f"  {name}: unchanged, kept")
-                return False
-        except (ValueError, KeyError, TypeError, OSError):   # a damaged stamp: the step runs again
-            pass
+    if _stamped(folder / STAMP, key):
+        records.append(StepRecord(name, key, "cached", 0.0))
+        echo(f"  {name}: unchanged, kept")
+        return False
     started = _time.perf_counter()
     with atomic_directory(folder) as tmp:
         work(Path(tmp))
@@ -130,16 +133,11 @@ def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
                               below_previous=config.below_previous)
         fit = fit_model(model, replace(config.sampler(), progress=False), out=tmp, checkpoint_dir=checkpoint,
                         executor=executor)
-        found = {}
-
-        def checks():   # run while the workers draw the figures that need none
-            found["checks"] = run_checks(fit, rng=config.seed)
-            found["warnings"] = record_checks(fit, found["checks"], tmp)
-            write_json(tmp / "checks.json", check_report(fit, checks=found["checks"]))
-            return found["checks"]
-
-        write_fit_figures(fit, tmp, checks=checks, executor=executor)
-        warnings = found["warnings"]
+        checks = run_checks(fit, rng=config.seed)
+        warnings = record_checks(fit, checks, tmp)
+        write_json(tmp / "checks.json", check_report(fit, checks=checks))
+        # the checks' figures here; those of the draws later, as a task of their own (figures_task)
+        write_fit_figures(fit, tmp, checks=checks, executor=executor, parts=("checks",))
         write_json(tmp / "map.json", {"names": list(model.names),
                                       "theta": [float(v) for v in fit.sampling.theta_map],
                                       "log_posterior": float(fit.sampling.log_post_map)})
@@ -266,12 +264,46 @@ def diagnosis_task(job_and_fit, report=None, executor=None):
     return records, log
 
 
+FIGURES_STAMP = "figures.json"   # in a fit folder: the fit step's key once its draws' figures are drawn
+
+
+def figures_task(job_and_fit, report=None, executor=None):
+    """Draw the figures of a test's posterior draws (bands, trace, corners, loads) into its fit folder, after
+    the fit step, which drew its checks' figures; returns the step records and the messages not yet shown.
+
+    A task of its own so that it can wait: drawn last, these small tasks (~4 s) fill the workers that the
+    last diagnoses leave idle. Each figure is written atomically, then ``figures.json`` with the fit step's
+    key; a rerun draws them again only when that key changed or was never written (a refit replaces the whole
+    fit folder, the stamp with it)."""
+    from cpas_bayes.outputs.plots.fit import write_fit_figures
+
+    job, fitted = job_and_fit
+    test, config, out, bundle_key, fit_key, diag_key = job
+    log, records = [], []
+    echo = report if report is not None else log.append
+    folder = test_folder(out, test.name, "fit")
+    name = f"{test.name} figures"
+    if _stamped(folder / FIGURES_STAMP, fit_key):
+        records.append(StepRecord(name, fit_key, "cached", 0.0))
+        return records, log
+    started = _time.perf_counter()
+    made = fitted[2] if fitted is not None else None
+    fit = load_baseline_fit(test, made if made is not None else reduce_test(test), folder, config)
+    write_fit_figures(fit, folder, executor=executor, parts=("draws",))
+    write_json(folder / FIGURES_STAMP, {"key": fit_key, "version": __version__})
+    seconds = _time.perf_counter() - started
+    records.append(StepRecord(name, fit_key, "ran", seconds))
+    echo(f"  {name}: done in {seconds:.0f} s")
+    return records, log
+
+
 def test_steps(job, report=None, executor=None):
-    """Reduce, fit and diagnose one test in this process (``executor`` for the fit's ensembles and the
-    diagnosis' fits); returns its step records and the messages not yet shown."""
+    """Reduce, fit, diagnose one test and draw its fit's figures in this process (``executor`` for the fit's
+    ensembles, the diagnosis' fits and the figures); returns its step records and the messages not yet shown."""
     fitted = fit_task(job, report, executor)
-    records, log = diagnosis_task((job, fitted), report, executor)
-    return fitted[0] + records, fitted[1] + log
+    diagnosed = diagnosis_task((job, fitted), report, executor)
+    drawn = figures_task((job, fitted), report, executor)
+    return fitted[0] + diagnosed[0] + drawn[0], fitted[1] + diagnosed[1] + drawn[1]
 
 
 def pooled_step_task(job, report=None):

@@ -136,40 +136,49 @@ class Executor:
     def map_chained(self, first, then, items, costs=None, desc="tasks", progress=None, on_report=None):
         """``[(a, then((item, a))) for item in items]`` with ``a = first(item)``: two tasks per item, the
         second started once its item's first is done and given its result (``report`` as in :meth:`map`).
+        ``then`` may be a tuple of such tasks, in order of priority: ``(a, b, c, ...)`` per item.
 
         On workers every ``first`` is handed out, costliest first (``costs``, stable among equals), before
-        any ``then``; each ``then`` goes to the next free worker as soon as its ``first`` is done, the
-        costliest ready one first. A phase of whole items ends on one worker finishing the last item while
-        the rest idle; split in two, it ends on the shorter second tasks. Here: item after item.
+        any later task; then the ready tasks of ``then[0]``, costliest first, before any of ``then[1]``, and
+        so on. A phase of whole items ends on one worker finishing the last item while the rest idle; split,
+        it ends on the later tasks, and small tasks of low priority (figures) fill the workers that the last
+        large ones leave idle. Here: item after item, its tasks in order.
         """
+        thens = tuple(then) if isinstance(then, (tuple, list)) else (then,)
         items = list(items)
         out = []
-        with _progress_bar(2 * len(items), desc, progress) as bar:
+        call = (lambda fn, x: fn(x, on_report)) if on_report is not None else (lambda fn, x: fn(x))
+        with _progress_bar((1 + len(thens)) * len(items), desc, progress) as bar:
             for item in items:
                 raise_if_requested()
-                a = first(item, on_report) if on_report is not None else first(item)
+                row = [call(first, item)]
                 bar.update(1)
-                raise_if_requested()
-                out.append((a, then((item, a), on_report) if on_report is not None else then((item, a))))
-                bar.update(1)
+                for fn in thens:
+                    raise_if_requested()
+                    row.append(call(fn, (item, row[0])))
+                    bar.update(1)
+                out.append(tuple(row))
         return out
 
     def _chained_on_workers(self, launch, wait_a_little, first, then, items, costs, bar):
         """The dispatch of :meth:`map_chained` on ``self.workers`` workers; ``launch(fn, item, index)`` starts a
         task and returns its future (``done()``, ``result()``), ``wait_a_little()`` idles briefly."""
-        n = len(items)
+        thens = tuple(then) if isinstance(then, (tuple, list)) else (then,)
+        n, width = len(items), 1 + len(thens)
         costs = [1.0] * n if costs is None else [float(c) for c in costs]
         firsts = sorted(range(n), key=lambda i: -costs[i])[::-1]   # popped from the end: costliest first
-        ready, running, results = [], {}, [[None, None] for _ in range(n)]
-        while firsts or ready or running:
-            while len(running) < self.workers and (firsts or ready):
+        ready = [[] for _ in thens]          # per later task: the items whose first is done, in that order
+        running, results = {}, [[None] * width for _ in range(n)]
+        while firsts or any(ready) or running:
+            while len(running) < self.workers and (firsts or any(ready)):
                 if firsts:
                     i = firsts.pop()
-                    running[launch(first, items[i], 2 * i)] = (0, i)
+                    running[launch(first, items[i], width * i)] = (0, i)
                 else:
-                    i = max(ready, key=lambda j: costs[j])   # the first ready among equals
-                    ready.remove(i)
-                    running[launch(then, (items[i], results[i][0]), 2 * i + 1)] = (1, i)
+                    k = next(k for k, r in enumerate(ready) if r)
+                    i = max(ready[k], key=lambda j: costs[j])   # the first ready among equals
+                    ready[k].remove(i)
+                    running[launch(thens[k], (items[i], results[i][0]), width * i + 1 + k)] = (1 + k, i)
             finished = [f for f in running if f.done()]
             if not finished:
                 wait_a_little()
@@ -179,7 +188,8 @@ class Executor:
                 stage, i = running.pop(f)
                 results[i][stage] = f.result()   # a task's error stops the map here
                 if stage == 0:
-                    ready.append(i)
+                    for r in ready:
+                        r.append(i)
                 bar.update(1)
         return [tuple(r) for r in results]
 
@@ -202,6 +212,10 @@ class Executor:
     def __exit__(self, *exc):
         self.close()
         return False
+
+
+def _task_count(then, items):
+    return (1 + (len(then) if isinstance(then, (tuple, list)) else 1)) * len(items)
 
 
 class _Deferred:
@@ -379,7 +393,7 @@ class ProcessExecutor(Executor):
             else:
                 time.sleep(0.05)
         try:
-            with _progress_bar(2 * len(items), desc, progress) as bar:
+            with _progress_bar(_task_count(then, items), desc, progress) as bar:
                 results = self._chained_on_workers(launch, wait_a_little, first, then, items, costs, bar)
             self._drain_to_the_end(on_report, open_tasks)
             return results
@@ -491,7 +505,7 @@ class DaskExecutor(Executor):
                 launched.append(self.client.submit(fn, item, pure=False))
             return launched[-1]
         try:
-            with _progress_bar(2 * len(items), desc, progress) as bar:
+            with _progress_bar(_task_count(then, items), desc, progress) as bar:
                 return self._chained_on_workers(launch, lambda: time.sleep(0.05), first, then, items, costs, bar)
         except BaseException:
             self.client.cancel(launched)

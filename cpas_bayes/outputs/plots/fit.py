@@ -535,7 +535,10 @@ def _figure_task(job):
     return _save(_DRAWERS[drawer](*args, **kwargs), path)
 
 
-def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None):
+FIGURE_PARTS = ("draws", "checks")   # the figures of the posterior's draws; those of the predictive checks
+
+
+def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None, parts=FIGURE_PARTS):
     """Write every figure of a fit into folder ``out``; return their paths.
 
     ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given; it may
@@ -543,14 +546,23 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
     the figures that need no checks (bands, loads, corners, trace), so that the two overlap.
     ``executor`` (:mod:`cpas_bayes.core.executor`) draws the figures in parallel, one task each (about
     1 s of matplotlib apiece); the figures do not depend on it: each has its own random stream.
+    ``parts`` (of :data:`FIGURE_PARTS`) draws some of them: ``"draws"`` (bands, trace, corners, loads) or
+    ``"checks"`` (PPC, LOO-PIT, residuals), each the same file as a call that draws both with the same
+    ``checks`` argument (a campaign draws the first later, as a task of its own).
     """
     from cpas_bayes.core.executor import Executor
 
+    unknown = [p for p in parts if p not in FIGURE_PARTS]
+    if unknown:
+        raise ValueError(f"unknown figure parts {unknown}; use some of {FIGURE_PARTS}")
     executor = executor or Executor()
     out = claim_folder(out)
     rng = np.random.default_rng(rng)
-    if checks is None:
+    if checks is None and "checks" in parts:
         checks = run_checks(fit, rng=rng)
+    if "draws" not in parts:
+        checks = checks() if callable(checks) else checks
+        return [_figure_task(job) for job in _check_figure_jobs(checks, out)]
     pred = _band_draws(fit, n_draws, rng)
     groups = corner_groups(fit)
     streams = iter(rng.spawn(len(groups) + 1))
@@ -571,9 +583,13 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
     jobs[2:] = sorted(jobs[2:], key=lambda job: -len(job[2][1]))   # corners with the most parameters first
     jobs.append(loads)
     started = [executor.submit(_figure_task, job) for job in jobs]
-    checks = checks() if callable(checks) else checks
-    late = [("ppc", out / "ppc.png", (checks.ppc,), {}),
+    if "checks" in parts:
+        checks = checks() if callable(checks) else checks
+        started += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
+    return [task.result() for task in started]
+
+
+def _check_figure_jobs(checks, out):
+    return [("ppc", out / "ppc.png", (checks.ppc,), {}),
             ("loo_pit", out / "loo_pit.png", (checks.loo_pit,), {}),
             ("residuals", out / "residuals.png", (checks.residuals,), {})]
-    started += [executor.submit(_figure_task, job) for job in late]
-    return [task.result() for task in started]
