@@ -3,8 +3,9 @@
 ``run_campaign(DIR, OUT, config)`` (``cpas-bayes campaign DIR --out OUT``):
 
 1. validate every bundle in DIR (all problems reported together, nothing run);
-2. per test: reduce, fit (posterior + figures + checks), diagnose (a logger
-   bundle's with the terms that apply to it: breathing and the discrepancy);
+2. per test: reduce, fit (posterior + checks), diagnose (a logger bundle's with
+   the terms that apply to it: breathing and the discrepancy), draw the fit's
+   figures (on workers: three chained tasks, the figures last);
 3. pool the fits by parachute kind and stage into the memo (the fit of a test
    whose diagnosis names a *measurement* cause — friction drift, sensor lag —
    is replaced by its extended fit, whose inflation parameters are free of it;
@@ -33,6 +34,7 @@ Layout of OUT::
     index.html, report.md          the report
     tests/<test>/reduction/        reduced.csv, reduction.json, reduction.png
     tests/<test>/fit/              posterior.nc, summary.json, checks.json, map.json, figures
+                                   (figures.json: the fit's key once the draws' figures are drawn)
     tests/<test>/diagnosis/        diagnosis.json, diagnosis.md, figures (+ extended/ fit if named)
     tests/<test>/compare/          compare.json, compare.png
     memo/                          memo.toml, memo_draws.csv, memo.md, forest plots
@@ -236,9 +238,10 @@ def run_campaign(folder, out, config: CampaignConfig = CampaignConfig(), echo=pr
     """Run (or resume) the campaign of the bundles in ``folder`` into ``out``; return what was done.
 
     ``executor`` (:mod:`cpas_bayes.core.executor`; default ``config.workers`` local
-    processes) runs the tests side by side — or, with fewer tests than
-    workers, one test at a time with its ensembles side by side — and then
-    the Monte Carlo and load comparison steps. Results do not depend on it.
+    processes) runs the tests side by side, each as three chained tasks (fit,
+    diagnosis, the fit's draw figures) — or, with fewer tests than workers,
+    one test at a time with its ensembles side by side — and then the pool's
+    tasks and the Monte Carlo and load comparison steps. Results do not depend on it.
     """
     from cpas_bayes.core.executor import make_executor
 
