@@ -98,31 +98,35 @@ def test_chained_tasks_run_second_after_first_with_its_result_on_every_executor(
     assert Executor().map_chained(_first, _then, jobs) == serial
 
 
+class _Done:
+    """A task that has finished by the time the dispatcher looks."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def done(self):
+        return True
+
+    def result(self):
+        return self.value
+
+
+class _NoBar:
+    def update(self, n):
+        pass
+
+
 def test_chained_tasks_hand_out_every_first_costliest_first_then_the_costliest_ready_second():
-    class Done:   # a task that has finished by the time the dispatcher looks
-        def __init__(self, value):
-            self.value = value
-
-        def done(self):
-            return True
-
-        def result(self):
-            return self.value
-
-    class Bar:
-        def update(self, n):
-            pass
-
     launched = []
 
     def launch(fn, item, index):
         launched.append((fn.__name__, item if fn is _first else item[0]))
-        return Done(fn.__name__)
+        return _Done(fn.__name__)
 
     ex = Executor()
     ex.workers = 2
     items = ["D1", "M1", "D2", "L1"]
-    out = ex._chained_on_workers(launch, lambda: None, _first, _then, items, [1, 2, 1, 9], Bar())
+    out = ex._chained_on_workers(launch, lambda: None, _first, _then, items, [1, 2, 1, 9], _NoBar())
     assert out == [("_first", "_then")] * 4
     assert launched == [("_first", "L1"), ("_first", "M1"), ("_first", "D1"), ("_first", "D2"),
                         ("_then", "L1"), ("_then", "M1"), ("_then", "D1"), ("_then", "D2")]
@@ -134,29 +138,15 @@ def _last(job_and_first, report=None):
 
 
 def test_chained_tasks_of_lower_priority_go_last_and_come_back_beside_the_others():
-    class Done:
-        def __init__(self, value):
-            self.value = value
-
-        def done(self):
-            return True
-
-        def result(self):
-            return self.value
-
-    class Bar:
-        def update(self, n):
-            pass
-
     launched = []
 
     def launch(fn, item, index):
         launched.append((fn.__name__, item if fn is _first else item[0], index))
-        return Done(fn.__name__)
+        return _Done(fn.__name__)
 
     ex = Executor()
     ex.workers = 3
-    out = ex._chained_on_workers(launch, lambda: None, _first, (_then, _last), ["A", "B"], [1, 2], Bar())
+    out = ex._chained_on_workers(launch, lambda: None, _first, (_then, _last), ["A", "B"], [1, 2], _NoBar())
     assert out == [("_first", "_then", "_last")] * 2
     assert launched == [("_first", "B", 3), ("_first", "A", 0), ("_then", "B", 4), ("_then", "A", 1),
                         ("_last", "B", 5), ("_last", "A", 2)]
