@@ -302,7 +302,9 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
         # small figure tasks, not on whole tests
         results = executor.map_chained(fit_task, (diagnosis_task, figures_task), jobs,
                                        [test_cost(j[0]) for j in jobs], desc="tests", on_report=echo)
-        results = [tuple(sum((r[k] for r in rows), []) for k in (0, 1)) for rows in results]
+        # per test: its three tasks' step records, then their messages, each in task order
+        results = [([rec for task in rows for rec in task[0]], [m for task in rows for m in task[1]])
+                   for rows in results]
     else:  # fewer tests than workers: one test at a time, each fit's ensembles side by side
         results = [test_steps(job, echo, executor) for job in jobs]
     collect(results, records, echo)
