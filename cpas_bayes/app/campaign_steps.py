@@ -76,17 +76,24 @@ def _stamped(stamp, key):
         return False
 
 
-def run_step(folder, key, work, records, name, echo):
-    """Run ``work(tmp)`` into a temporary folder renamed onto ``folder`` unless its stamp holds ``key``."""
+def run_step(folder, key, work, records, name, echo, stamp=STAMP):
+    """Run ``work(tmp)`` into a temporary folder renamed onto ``folder`` unless its stamp holds ``key``.
+
+    ``stamp`` other than :data:`STAMP`: a step that adds files to a folder another step wrote (a fit's
+    draw figures): ``work(folder)`` writes each file atomically in place, then the stamp file is written."""
     folder = Path(folder)
-    if _stamped(folder / STAMP, key):
+    if _stamped(folder / stamp, key):
         records.append(StepRecord(name, key, "cached", 0.0))
         echo(f"  {name}: unchanged, kept")
         return False
     started = _time.perf_counter()
-    with atomic_directory(folder) as tmp:
-        work(Path(tmp))
-        write_json(Path(tmp) / STAMP, {"key": key, "version": __version__})
+    if stamp == STAMP:
+        with atomic_directory(folder) as tmp:
+            work(Path(tmp))
+            write_json(Path(tmp) / STAMP, {"key": key, "version": __version__})
+    else:
+        work(folder)
+        write_json(folder / stamp, {"key": key, "version": __version__})
     seconds = _time.perf_counter() - started
     records.append(StepRecord(name, key, "ran", seconds))
     echo(f"  {name}: done in {seconds:.0f} s")
@@ -256,8 +263,7 @@ def diagnosis_task(job_and_fit, report=None, executor=None):
     if diag_key is None:
         return records, log
     echo = report if report is not None else log.append
-    made = fitted[2] if fitted is not None else None
-    reduced = functools.cache(lambda: made if made is not None else reduce_test(test))
+    reduced = _reduction_from(test, fitted)
     base = test_folder(out, test.name)
     run_step(base / "diagnosis", diag_key, _diagnose_work(test, reduced, config, base / "fit", echo, executor),
              records, f"{test.name} diagnosis", echo)
@@ -280,21 +286,20 @@ def figures_task(job_and_fit, report=None, executor=None):
     job, fitted = job_and_fit
     test, config, out, bundle_key, fit_key, diag_key = job
     log, records = [], []
-    echo = report if report is not None else log.append
-    folder = test_folder(out, test.name, "fit")
-    name = f"{test.name} figures"
-    if _stamped(folder / FIGURES_STAMP, fit_key):
-        records.append(StepRecord(name, fit_key, "cached", 0.0))
-        return records, log
-    started = _time.perf_counter()
-    made = fitted[2] if fitted is not None else None
-    fit = load_baseline_fit(test, made if made is not None else reduce_test(test), folder, config)
-    write_fit_figures(fit, folder, executor=executor, parts=("draws",))
-    write_json(folder / FIGURES_STAMP, {"key": fit_key, "version": __version__})
-    seconds = _time.perf_counter() - started
-    records.append(StepRecord(name, fit_key, "ran", seconds))
-    echo(f"  {name}: done in {seconds:.0f} s")
+    reduced = _reduction_from(test, fitted)
+
+    def work(folder):
+        fit = load_baseline_fit(test, reduced(), folder, config)
+        write_fit_figures(fit, folder, executor=executor, parts=("draws",))
+    run_step(test_folder(out, test.name, "fit"), fit_key, work, records, f"{test.name} figures",
+             report if report is not None else log.append, stamp=FIGURES_STAMP)
     return records, log
+
+
+def _reduction_from(test, fitted):
+    """The reduction :func:`fit_task` handed on (``fitted``: its result), or made here when it made none."""
+    made = fitted[2] if fitted is not None else None
+    return functools.cache(lambda: made if made is not None else reduce_test(test))
 
 
 def test_steps(job, report=None, executor=None):

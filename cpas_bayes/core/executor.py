@@ -144,7 +144,7 @@ class Executor:
         it ends on the later tasks, and small tasks of low priority (figures) fill the workers that the last
         large ones leave idle. Here: item after item, its tasks in order.
         """
-        thens = tuple(then) if isinstance(then, (tuple, list)) else (then,)
+        thens = _later_tasks(then)
         items = list(items)
         out = []
         call = (lambda fn, x: fn(x, on_report)) if on_report is not None else (lambda fn, x: fn(x))
@@ -163,7 +163,7 @@ class Executor:
     def _chained_on_workers(self, launch, wait_a_little, first, then, items, costs, bar):
         """The dispatch of :meth:`map_chained` on ``self.workers`` workers; ``launch(fn, item, index)`` starts a
         task and returns its future (``done()``, ``result()``), ``wait_a_little()`` idles briefly."""
-        thens = tuple(then) if isinstance(then, (tuple, list)) else (then,)
+        thens = _later_tasks(then)
         n, width = len(items), 1 + len(thens)
         costs = [1.0] * n if costs is None else [float(c) for c in costs]
         firsts = sorted(range(n), key=lambda i: -costs[i])[::-1]   # popped from the end: costliest first
@@ -214,8 +214,13 @@ class Executor:
         return False
 
 
+def _later_tasks(then):
+    """``map_chained``'s ``then``, one task or a tuple of them, as a tuple."""
+    return tuple(then) if isinstance(then, (tuple, list)) else (then,)
+
+
 def _task_count(then, items):
-    return (1 + (len(then) if isinstance(then, (tuple, list)) else 1)) * len(items)
+    return (1 + len(_later_tasks(then))) * len(items)
 
 
 class _Deferred:

@@ -560,9 +560,16 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
     rng = np.random.default_rng(rng)
     if checks is None and "checks" in parts:
         checks = run_checks(fit, rng=rng)
-    if "draws" not in parts:
+    jobs = _draw_figure_jobs(fit, out, n_draws, rng) if "draws" in parts else []
+    started = [executor.submit(_figure_task, job) for job in jobs]
+    if "checks" in parts:
         checks = checks() if callable(checks) else checks
-        return [_figure_task(job) for job in _check_figure_jobs(checks, out)]
+        started += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
+    return [task.result() for task in started]
+
+
+def _draw_figure_jobs(fit, out, n_draws, rng):
+    """The figures of the posterior's draws as tasks: bands, trace, corners (most parameters first), loads."""
     pred = _band_draws(fit, n_draws, rng)
     groups = corner_groups(fit)
     streams = iter(rng.spawn(len(groups) + 1))
@@ -581,12 +588,7 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
         jobs.append(("corner", inside(out, f"corner_{pid}_s{k}.png"), (values, short, labels, title),
                      {"rng": next(streams)}))
     jobs[2:] = sorted(jobs[2:], key=lambda job: -len(job[2][1]))   # corners with the most parameters first
-    jobs.append(loads)
-    started = [executor.submit(_figure_task, job) for job in jobs]
-    if "checks" in parts:
-        checks = checks() if callable(checks) else checks
-        started += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
-    return [task.result() for task in started]
+    return jobs + [loads]
 
 
 def _check_figure_jobs(checks, out):
