@@ -410,3 +410,38 @@ def test_the_compiled_drag_area_rate_is_the_laws_central_difference_and_continuo
     rates = np.array(rates)
     assert rates.max() > 0 > rates.min()          # from growth to decay across the sweep
     assert np.max(np.abs(np.diff(rates))) < 0.02 * np.ptp(rates)
+
+
+def test_the_rate_over_each_bins_own_half_width_is_the_bins_mean_rate():
+    """A model of bin means reads dCDS/dt over each bin's own span: per time, the law's difference across
+    ±half-width, which is the mean of the rate over the bin (the law's values at the bin edges). Bad widths
+    are refused."""
+    args = _random_cluster_stages(np.random.default_rng(35))
+    t = np.linspace(0.0, 20.0, 801)
+    half = np.where(np.arange(t.size) % 3 == 0, 0.05, 0.01)
+    cds, rate, _ = cluster_drag_area(t, with_rate=True, rate_half_width=half, **args)
+    ahead, _ = cluster_drag_area(t + half, **args)
+    behind, _ = cluster_drag_area(t - half, **args)
+    np.testing.assert_allclose(rate, (ahead - behind) / (2 * half), rtol=1e-9, atol=1e-9)
+    fine = np.linspace(-1.0, 1.0, 2001)
+    i = int(np.argmax(np.abs(rate[0, 0])))                 # the bin where the law moves fastest
+    dense, _ = cluster_drag_area(t[i] + half[i] * fine, **args)
+    mean_rate = np.trapezoid(np.gradient(dense[0, 0], t[i] + half[i] * fine), dx=half[i] * 1e-3) / (2 * half[i])
+    assert rate[0, 0, i] == pytest.approx(mean_rate, rel=0.02)
+    for bad in (np.full(5, 0.01), -half):
+        with pytest.raises(ValueError, match="rate_half_width"):
+            cluster_drag_area(t, with_rate=True, rate_half_width=bad, **args)
+
+
+def test_a_model_reads_the_added_mass_rate_over_its_bins_spans():
+    from pathlib import Path
+
+    from cpas_bayes.data.bundle import read_bundle
+    from cpas_bayes.data.reduction import reduce_test
+    from cpas_bayes.inference.fit import prepare_model
+
+    test = read_bundle(Path(__file__).resolve().parents[1] / "cpas_bayes" / "data" / "examples" / "drogue-clean")
+    model = prepare_model(test, reduce_test(test))
+    step = float(np.median(np.diff(test.time)))
+    np.testing.assert_allclose(model.rate_half_width, 0.5 * model.obs.samples_per_bin * step)
+    assert model.rate_half_width.min() < model.rate_half_width.max()     # transient bins and steady ones

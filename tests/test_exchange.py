@@ -185,3 +185,26 @@ def test_in_the_samplers_drag_area_coordinates_an_exchange_stays_exact_and_swaps
     reefed = target.exchanges()[0].apply(u)
     np.testing.assert_allclose(reefed[:, col["D1.s1.cds_reefed"]], u[:, col["D2.s1.cds_reefed"]], rtol=1e-12)
     np.testing.assert_allclose(reefed[:, col["D2.s1.cds_reefed"]], u[:, col["D1.s1.cds_reefed"]], rtol=1e-12)
+
+
+def test_in_peak_time_coordinates_an_exchange_carries_its_jacobian_factor(drogue_pair):
+    """In peak-time coordinates |∂u/∂θ| = Π s (each stage's seconds to peak per unit n_p) need not be the same
+    at θ and at its exchange, so the exchange carried into u is accepted on the u-density ratio times
+    |∂u′/∂u|: with that factor (``log_factor``) the ratio is the θ-posterior ratio again, without it not."""
+    from cpas_bayes.inference.coordinates import SamplerTarget, sampling_coordinates
+
+    m = drogue_pair
+    coords = sampling_coordinates(m, "peak_time")
+    target = SamplerTarget(m, coords)
+    theta = _theta(m, np.random.default_rng(5))
+    u = coords.to_sampler(theta)
+    unequal = 0
+    for e_theta, e_u in zip(m.exchanges(), target.exchanges()):
+        swapped = e_u.apply(u)
+        np.testing.assert_allclose(e_u.apply(swapped), u, rtol=1e-10)
+        np.testing.assert_allclose(coords.to_model(swapped), e_theta.apply(theta), rtol=1e-10)
+        factor = e_u.log_factor(u, swapped)
+        np.testing.assert_allclose(target(swapped) - target(u) + factor, m(e_theta.apply(theta)) - m(theta),
+                                   atol=1e-6)
+        unequal += int(np.any(np.abs(factor) > 1e-6))
+    assert unequal > 0     # the factor is not always 1: leaving it out would bias the sampler

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-COORDINATES = ("drag_area", "model")   # the sampler's choices: reefed drag areas R_k, or θ as the model has it
+COORDINATES = ("drag_area", "model", "peak_time")   # reefed drag areas R_k, θ as the model has it, times to peak
 
 
 class DragAreaCoordinates:
@@ -60,6 +60,75 @@ class DragAreaCoordinates:
             out = -np.log(cds).sum(axis=-1)
         return np.where(np.all(cds > 0, axis=-1), out, -np.inf)
 
+    def inverse(self, u):
+        """(θ, log|∂θ/∂u|) from u (…, D)."""
+        return self.to_model(u), self.log_jacobian(u)
+
+
+class PeakTimeCoordinates:
+    """u = θ with each stage's n_p replaced by its time from start to peak, t_fp = n_p·s (seconds).
+
+    s = D_o·sqrt(|CDS_i − CDS_start|/CDS_o)/V_i (:meth:`TestModel.fill_scales`) depends on the stage's
+    start, its drag areas and the earlier stages, not on its n_p, so the map is triangular and
+    log|∂θ/∂u| = −Σ log s. Why: the data fix when a stage peaks, and n_p trades off with the stage's start
+    along that constraint (n_p = (T_peak − start)/s(start)); the posterior of (start, n_p, expopen) is a
+    curved ridge that the moves cross slowly. Measured on a three-Main added-mass fit (45 parameters, an
+    independence proposal fitted to half of 2,024 posterior draws, tried on the other half): acceptance
+    0.026 in θ against 0.28 in u.
+    """
+
+    def __init__(self, model):
+        self.model = model
+        self.names = list(model.names)
+        columns, chute, stage = [], [], []
+        first = {}
+        for p, prefix in enumerate(model.chute_prefix):
+            first.setdefault(prefix, p)        # a composite group's stages are its first member's
+        for prefix, p in first.items():
+            for k in range(int(model.stages_per_chute[p])):
+                name = f"{prefix}.s{k + 1}.n_p"
+                if name in model.index:
+                    columns.append(model.index[name])
+                    chute.append(p)
+                    stage.append(k)
+                    self.names[model.index[name]] = f"{prefix}.s{k + 1}.t_peak"
+        self.columns, self._chute, self._stage = (np.array(a, dtype=int) for a in (columns, chute, stage))
+
+    def __bool__(self):
+        return self.columns.size > 0
+
+    def _scales(self, x, peak_times):
+        flat = np.asarray(x, float).reshape(-1, len(self.names))
+        n_p, scale = self.model.fill_scales(flat, peak_times=peak_times)
+        pick = (slice(None), self._chute, self._stage)
+        shape = np.shape(x)[:-1] + (self.columns.size,)
+        return n_p[pick].reshape(shape), scale[pick].reshape(shape)
+
+    def to_sampler(self, theta):
+        """u from θ (…, D)."""
+        u = np.array(theta, dtype=float, copy=True)
+        _, scale = self._scales(theta, False)
+        u[..., self.columns] = u[..., self.columns] * scale
+        return u
+
+    def inverse(self, u):
+        """(θ, log|∂θ/∂u|) from u (…, D); −inf where a scale is not a positive number (outside every prior)."""
+        theta = np.array(u, dtype=float, copy=True)
+        n_p, scale = self._scales(u, True)
+        theta[..., self.columns] = n_p
+        good = np.all(np.isfinite(scale) & (scale > 0), axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            jac = -np.log(np.where(good[..., None], scale, 1.0)).sum(axis=-1)
+        return theta, np.where(good, jac, -np.inf)
+
+    def to_model(self, u):
+        """θ from u (…, D)."""
+        return self.inverse(u)[0]
+
+    def log_jacobian(self, u):
+        """log|∂θ/∂u| (…,): −Σ log s."""
+        return self.inverse(u)[1]
+
 
 def sampling_coordinates(model, choice="drag_area"):
     """The coordinates ``choice`` (one of ``COORDINATES``) for ``model``, or None where the sampler moves in
@@ -68,7 +137,12 @@ def sampling_coordinates(model, choice="drag_area"):
         raise ValueError(f"coordinates must be one of {', '.join(COORDINATES)}, not {choice!r}")
     if choice == "model" or not all(hasattr(model, a) for a in ("chute_prefix", "index", "names")):
         return None
-    coords = DragAreaCoordinates(model)
+    if choice == "peak_time":
+        if not hasattr(model, "fill_scales"):
+            return None
+        coords = PeakTimeCoordinates(model)
+    else:
+        coords = DragAreaCoordinates(model)
     return coords if coords else None
 
 
@@ -94,11 +168,11 @@ class SamplerTarget:
 
     def __call__(self, u):
         u = np.atleast_2d(np.asarray(u, float))
-        jac = self.coords.log_jacobian(u)
+        theta, jac = self.coords.inverse(u)
         out = np.full(u.shape[0], -np.inf)
         ok = np.isfinite(jac)
         if ok.any():
-            out[ok] = self.model(self.coords.to_model(u[ok])) + jac[ok]
+            out[ok] = self.model(theta[ok]) + jac[ok]
         return out
 
 
@@ -117,3 +191,9 @@ class _ExchangeInSampler:
 
     def apply(self, u):
         return self.coords.to_sampler(self.exchange.apply(self.coords.to_model(u)))
+
+    def log_factor(self, u, u_new):
+        """log|∂u′/∂u| of the exchange in u, the Metropolis ratio's factor: |∂u/∂θ| need not be the same at
+        θ and at its exchange (peak-time coordinates: a stage's scale reads the drag area held from the
+        stage before, which the exchange of one stage does not carry along)."""
+        return self.coords.log_jacobian(u) - self.coords.log_jacobian(u_new)

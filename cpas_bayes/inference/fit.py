@@ -255,8 +255,9 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
                                        options, ckpts, executor)
         seconds = time.perf_counter() - started
         for run in runs if coords else ():   # back to θ: the draws and their log density
-            run.log_prob = run.log_prob - coords.log_jacobian(run.draws)
-            run.draws = coords.to_model(run.draws)
+            theta, log_jacobian = coords.inverse(run.draws)
+            run.log_prob = run.log_prob - log_jacobian
+            run.draws = theta
     finally:
         if own:
             executor.close()

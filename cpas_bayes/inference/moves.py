@@ -234,8 +234,13 @@ class ExchangeMove(emcee.moves.Move):
             if rows.any():
                 q[rows] = exchange.apply(state.coords[rows])
         new_log_prob = np.asarray(model.log_prob_fn(q), dtype=float)
+        factor = np.zeros(n)     # log|∂q/∂s|: 0 for an exchange of θ, not always for one carried into u
+        for e, exchange in enumerate(self.exchanges):
+            rows = pick == e
+            if rows.any() and hasattr(exchange, "log_factor"):
+                factor[rows] = exchange.log_factor(state.coords[rows], q[rows])
         with np.errstate(invalid="ignore"):
-            accepted = new_log_prob - state.log_prob > np.log(model.random.rand(n))   # NaN: rejected
+            accepted = new_log_prob - state.log_prob + factor > np.log(model.random.rand(n))   # NaN: rejected
         state = self.update(state, emcee.State(q, log_prob=new_log_prob), accepted)
         return state, accepted
 

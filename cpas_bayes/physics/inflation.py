@@ -341,9 +341,11 @@ def _law_at(time, start, cds_stage, expopen, ck, t_k, n_stages, decay, below_pre
 
 @numba.njit(cache=True)
 def parachute_stage_rate(t, start, cds_stage, expopen, ck, t_k, n_stages, decay, below_previous, t_f, t_fp, held,
-                         step, out):
-    """One parachute's dCDS/dt at ``t`` (N,) into ``out`` (N,): the law's central difference over ±``step``,
-    from the stage timing (``t_f``, ``t_fp``, ``held``: (K,)) that :func:`parachute_stage_law` wrote.
+                         steps, out):
+    """One parachute's dCDS/dt at ``t`` (N,) into ``out`` (N,): the law's central difference over ±``steps``
+    ((N,), or (1,) for every time), from the stage timing (``t_f``, ``t_fp``, ``held``: (K,)) that
+    :func:`parachute_stage_law` wrote. Over a bin's own half-width the difference is the mean rate over the
+    bin, exactly: what a channel of bin means sees.
 
     A difference, not the law's derivative: that jumps at the law's kinks (t_fp, a stage's start), so the
     added mass' force would jump whenever a kink crossed a bin and the likelihood with it (by 33 in log p
@@ -361,6 +363,7 @@ def parachute_stage_rate(t, start, cds_stage, expopen, ck, t_k, n_stages, decay,
             until[k] = min(until[k], start[j])
         first = min(first, start[k])
     for i in range(t.shape[0]):
+        step = steps[i] if steps.shape[0] > 1 else steps[0]
         lo, hi = t[i] - step, t[i] + step
         constant = hi < first
         if not constant:
@@ -434,7 +437,7 @@ def parachute_stage_law(t, start, cds_stage, cds_o, diameter, n_fill, expopen, c
 @numba.njit(cache=True)
 def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
                       n_stages, decay, below_previous, fill_is_np, t_sorted, out, t_f_out, t_fp_out, n_out,
-                      held_out, with_rate, rate_out):
+                      held_out, with_rate, rate_steps, rate_out):
     B, P = start.shape[:2]
     per_walker_time = t.shape[0] > 1
     for b in range(B):
@@ -447,19 +450,21 @@ def _drag_area_kernel(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
             if with_rate:
                 parachute_stage_rate(t[tb], start[b, p], cds_stage[b, p], expopen[b, p], ck[b, p], t_k[b, p],
                                      n_stages[p], decay, below_previous, t_f_out[b, p], t_fp_out[b, p],
-                                     held_out[b, p], RATE_STEP, rate_out[b, p])
+                                     held_out[b, p], rate_steps, rate_out[b, p])
 
 
 def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck, t_k, v_start,
-                      n_stages=None, decay="linear", fill_constant="n_p", below_previous="drop", with_rate=False):
+                      n_stages=None, decay="linear", fill_constant="n_p", below_previous="drop", with_rate=False,
+                      rate_half_width=None):
     """Compiled :func:`parachute_drag_area` for a cluster: stage arrays (B, P, K), ``cds_o`` (B, P).
 
     ``t`` is (N,) shared by all rows, or (B, N) one time base per row (for a
     shifted sensor). ``n_stages`` (P,) gives each parachute's real stage count
     (extra stage slots are ignored). Returns ``cds`` (B, P, N) and a
     :class:`StageTiming` with fields (B, P, K); ``with_rate`` also dCDS/dt
-    (B, P, N) between them, the law's central difference over ±:data:`RATE_STEP`
-    (:func:`parachute_stage_rate`), for the added mass, in the same pass.
+    (B, P, N) between them, the law's central difference over ±``rate_half_width``
+    ((N,) per time, or one for all; default :data:`RATE_STEP`: :func:`parachute_stage_rate`), for the
+    added mass, in the same pass.
     """
     codes = decay_code(decay), below_previous_code(below_previous)
     start = np.ascontiguousarray(start, dtype=float)
@@ -475,8 +480,12 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     # Ascending times (every caller's but a user's own) let each stage visit only its own bins.
     t_sorted = bool(np.all(t2[:, 1:] >= t2[:, :-1]))
     rate = np.zeros_like(out) if with_rate else np.zeros((1, 1, 1))
+    steps = np.atleast_1d(np.asarray(RATE_STEP if rate_half_width is None else rate_half_width, float))
+    if steps.size not in (1, t2.shape[1]) or not np.all(steps > 0):
+        raise ValueError(f"rate_half_width must be positive, one value or one per time ({t2.shape[1]}), "
+                         f"not {steps.size} values")
     _drag_area_kernel(t2, start, stage[0], cds_o, diameter, *stage[1:], n_stages, *codes,
-                      fill_constant == "n_p", t_sorted, out, *fields, with_rate, rate)
+                      fill_constant == "n_p", t_sorted, out, *fields, with_rate, np.ascontiguousarray(steps), rate)
     t_f, t_fp, n, held = fields
     if fill_constant == "n_p":
         n_p = stage[1]
@@ -484,3 +493,54 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
         n_p = n * np.where(t_f > 0, t_fp / np.where(t_f > 0, t_f, 1.0), 1.0)
     timing = StageTiming(cds_start=held, t_f=t_f, t_fp=t_fp, n=n, n_p=n_p)
     return (out, rate, timing) if with_rate else (out, timing)
+
+
+@numba.njit(cache=True, error_model="numpy")   # 0/0 and x/0 as NaN and ±inf: a walker's, not an error
+def _peak_time_kernel(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay,
+                      below_previous, fill_is_peak_time, n_p_out, scale_out):
+    B, P = start.shape[:2]
+    for b in range(B):
+        for p in range(P):
+            held = 0.0
+            for k in range(n_stages[p]):
+                cds_i = cds_stage[b, p, k]
+                growth = cds_i - held
+                scale = diameter[p] * np.sqrt(abs(growth) / cds_o[b, p]) / v_start[b, p, k]
+                n_p = fill[b, p, k] / scale if fill_is_peak_time else fill[b, p, k]
+                n_p_out[b, p, k] = n_p
+                scale_out[b, p, k] = scale
+                if k + 1 < n_stages[p]:     # the drag area the next stage starts from, as the law holds it
+                    ratio = (ck[b, p, k] * cds_i - held) / growth if growth > 0.0 else 1.0
+                    r_pow = ratio ** compiled_peak_exponent(expopen[b, p, k], decay)
+                    t_fp = n_p * scale if growth > 0.0 else 0.0
+                    t_f = t_fp / r_pow if growth > 0.0 else 0.0
+                    held = compiled_stage_drag_area(start[b, p, k + 1] - start[b, p, k], held, cds_i, t_f, t_fp,
+                                                    expopen[b, p, k], ck[b, p, k], t_k[b, p, k], decay,
+                                                    below_previous)
+
+
+def peak_time_scales(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay="linear",
+                     below_previous="drop", fill_is_peak_time=False):
+    """(n_p, s) of every stage (B, P, K): s = D_o·sqrt(|CDS_i − CDS_start|/CDS_o)/V_i, the seconds from
+    the stage's start to its peak per unit n_p, so that t_fp = n_p·s (Eqs. 14, 15 and 17: t_f·(…)^(1/expopen)
+    is n_p's fill time).
+
+    ``fill`` holds n_p, or with ``fill_is_peak_time`` the times to peak t_fp, whose n_p is then t_fp/s. A
+    stage's s depends on the earlier stages only (through the drag area held at its start), so one pass in
+    stage order inverts the map. The sampler's peak-time coordinates
+    (:mod:`cpas_bayes.inference.coordinates`) move in t_fp: the data fix a stage's peak far better than
+    n_p, which trades off with its start along a curve. At a stage that does not grow (t_fp = 0 in the law)
+    s uses |CDS_i − CDS_start|, which keeps the map a bijection.
+    """
+    start = np.ascontiguousarray(start, dtype=float)
+    B, P, K = start.shape
+    stage = [np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), (B, P, K)))
+             for a in (cds_stage, fill, expopen, ck, t_k, v_start)]
+    cds_o = np.ascontiguousarray(np.broadcast_to(np.asarray(cds_o, float), (B, P)))
+    diameter = np.ascontiguousarray(np.broadcast_to(np.asarray(diameter, float), (P,)))
+    n_stages = np.asarray(n_stages, dtype=np.int64)
+    n_p, scale = np.zeros((B, P, K)), np.ones((B, P, K))
+    with np.errstate(all="ignore"):
+        _peak_time_kernel(start, stage[0], cds_o, diameter, *stage[1:], n_stages, decay_code(decay),
+                          below_previous_code(below_previous), bool(fill_is_peak_time), n_p, scale)
+    return n_p, scale

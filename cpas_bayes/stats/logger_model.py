@@ -238,6 +238,8 @@ class LoggerModel(TestModel):
         super().__init__(test, obs, kind_priors, nuisance, decay=decay, extensions=extensions, cluster=cluster,
                          below_previous=below_previous)
         self._air_index = np.array([self.index[n] for n in air.AIR_PARAMETERS])
+        # the law is evaluated at the averaging nodes, which do the averaging: dCDS/dt there is a point rate
+        self.rate_half_width = None
         # The averaging nodes are the same for every row: their interpolation weights on the reconstruction's
         # time base (the readings), once.
         t = self.channels.accel_time

@@ -66,7 +66,8 @@ import math
 import numpy as np
 
 from cpas_bayes.data.bundle import FlightTest
-from cpas_bayes.physics.inflation import below_previous_code, cluster_drag_area, decay_code, stage_role, stage_tag
+from cpas_bayes.physics.inflation import (below_previous_code, cluster_drag_area, decay_code, peak_time_scales,
+                                          stage_role, stage_tag)
 from cpas_bayes.stats.cluster_form import chute_prefixes, stage_exchanges, start_prior
 from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
 from cpas_bayes.stats.likelihood_kernel import whitened_residuals as fused_whitened_residuals
@@ -145,6 +146,10 @@ class TestModel:
         self.area_o = math.pi / 4 * self.diameter**2
         self.chute_weight = np.array([p.weight for p in test.parachutes])
         self.stated_total_weight = obs.stated_vehicle_weight + self.chute_weight.sum()
+        # The added mass' dCDS/dt at a bin: the difference across the bin's span, the mean rate over the bin
+        # that a channel of bin means sees, smooth as the law's kinks cross bins (±1 ms stalled MAP searches).
+        step = float(np.median(np.diff(obs.native_time))) if obs.native_time.size > 1 else 0.0
+        self.rate_half_width = 0.5 * obs.samples_per_bin * step if step > 0 else None
 
     # -- parameters -------------------------------------------------------
 
@@ -340,11 +345,21 @@ class TestModel:
         ``with_rate``: (drag areas, their time derivative, timing)."""
         if np.ndim(t) == 3:  # (B, 1, N): one time base per row
             t = t[:, 0, :]
+        half = self.rate_half_width
+        half = half if with_rate and half is not None and np.shape(t)[-1] == half.size else None
         return cluster_drag_area(
             t, stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter,
             stage["n_p"], stage["expopen"], stage["ck"], stage["tk"], self.stage_start_airspeed(stage),
             n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p",
-            below_previous=self.below_previous, with_rate=with_rate)
+            below_previous=self.below_previous, with_rate=with_rate, rate_half_width=half)
+
+    def fill_scales(self, theta, peak_times=False):
+        """(n_p, s) of every stage (B, P, K) at θ (B, D), t_fp = n_p·s (:func:`peak_time_scales`); with
+        ``peak_times`` θ's n_p columns hold the times to peak t_fp, and n_p is the one giving them."""
+        stage = self.gather_stages(np.atleast_2d(theta))
+        return peak_time_scales(stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter, stage["n_p"],
+                                stage["expopen"], stage["ck"], stage["tk"], self.stage_start_airspeed(stage),
+                                self.stages_per_chute, self.decay, self.below_previous, peak_times)
 
     def predict(self, theta):
         theta = np.atleast_2d(theta)
