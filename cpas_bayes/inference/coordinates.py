@@ -11,6 +11,11 @@ and targets p(u) = p(θ(u))·|∂θ/∂u|, where ε_k = R_k/CDS_o gives log|∂�
 triangular: each R_k column divides by its own parachute's CDS_o column). Draws are mapped back to θ,
 and their log density back to θ's, before anything downstream reads them: the posterior is the same
 distribution, only the sampler's path through it changes (tested: the sampled law matches in both).
+
+The other choice, ``"peak_time"`` (:class:`PeakTimeCoordinates`), replaces each stage's n_p by its time
+from start to peak, for the same reason: the data fix when a stage peaks, and n_p trades off with the
+stage's start along that constraint. Every coordinate object has ``names``, ``to_sampler``,
+``to_model``, ``log_jacobian`` and ``inverse`` (θ and log|∂θ/∂u| in one pass).
 """
 
 from __future__ import annotations
