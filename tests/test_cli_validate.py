@@ -223,6 +223,6 @@ def test_validate_refuses_a_logger_record_that_reduce_would_refuse(tmp_path, cap
     folder = write_bundle(replace(test, data=test.data[t <= 0.95].reset_index(drop=True)), tmp_path / "short")
     code, out, err = run(capsys, "validate", folder)
     assert code == 2 and out == ""
-    assert err.startswith(f"refused: {folder / 'data.csv'}, columns 'v_north', 'v_east', 'v_up': only 1 receiver "
-                          "sample(s) are stamped"), err
-    assert "Fix: give a record whose accelerometer readings run from release past at least 3" in err
+    assert err.startswith(f"refused: {folder / 'data.csv'}, columns 'v_north', 'v_east', 'v_up': the "
+                          "accelerometer's record and the receiver's overlap too little"), err
+    assert "Fix: supply accelerometer readings until at least" in err

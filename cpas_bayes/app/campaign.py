@@ -57,8 +57,9 @@ from cpas_bayes.app.campaign_steps import (StepRecord, bundle_digest, collect, d
 from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.files import write_json
 from cpas_bayes.core.inputs import inside, read_json
-from cpas_bayes.core.ownership import check_output, claim_folder
+from cpas_bayes.core.ownership import check_output, check_outside_inputs, claim_folder
 from cpas_bayes.data.bundle import TOML_NAME, read_bundle
+from cpas_bayes.data.bundle_csv import bundle_folders
 from cpas_bayes.stats.model_terms import EXTENSIONS
 
 MEASUREMENT_CAUSES = ("friction_drift", "sensor_lag")
@@ -86,9 +87,7 @@ def find_bundles(folder) -> list:
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(folder, "", "not a folder", "give the folder that holds the test bundles")
-    if (folder / TOML_NAME).is_file():
-        return [folder]
-    found = sorted(p for p in folder.iterdir() if p.is_dir() and (p / TOML_NAME).is_file())
+    found = bundle_folders(folder)
     if not found:
         raise InputError(folder, "", f"no bundle (a folder with {TOML_NAME}) inside",
                          "put one folder per flight test in it (docs/test-bundle.md)")
@@ -262,6 +261,7 @@ def _run_campaign(folder, out, config, echo, executor) -> CampaignResult:
     started = _time.perf_counter()
     check_output(out)
     paths = find_bundles(folder)
+    check_outside_inputs(out, paths)   # its outputs never among a bundle's files
     tests = validate_all(paths)
     for t in tests:   # a bad or missing prior file: before any step
         priors_of_test(t, config.priors)

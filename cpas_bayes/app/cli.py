@@ -140,7 +140,7 @@ def demo(out):
 
 @cli.command("reduce")
 @click.argument("bundle", type=click.Path(path_type=Path))
-@out_option("Folder for reduced.csv, reduction.json and reduction.png.", required=True)
+@out_option("Folder for reduced.csv, reduction.json and reduction.png.", inputs="bundle", required=True)
 @click.option("--scale", type=click.Choice(["constant", "linear"]), default="constant", show_default=True,
               help="Load-cell friction scale factor: one constant, or a linear trend through the windows.")
 @click.option("--window", "windows", multiple=True, metavar="T0:T1",
@@ -255,7 +255,7 @@ def synth_command(scenario, effect, magnitude, seed, out):
 
 @cli.command("fit")
 @click.argument("bundle", type=click.Path(path_type=Path))
-@out_option("Folder for the fit's outputs.", required=True)
+@out_option("Folder for the fit's outputs.", inputs="bundle", required=True)
 @seed_option("Seed of the MAP starts and the sampler.")
 @priors_option()
 @click.option("--decay", type=click.Choice(DECAY_SHAPES), default="linear", show_default=True,
@@ -342,7 +342,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
               help="Bundle whose configuration (parachutes, vehicle, initial state, cutter times) is flown.")
 @click.option("--runs", type=RUNS, default=10000, show_default=True,
               help="Monte Carlo runs (at most 10,000,000 and what fits in half the available memory).")
-@out_option("Folder for runs.csv, summary.json, peak_loads.png and fill_times.png.", required=True)
+@out_option("Folder for runs.csv, summary.json, peak_loads.png and fill_times.png.", inputs="like", required=True)
 @seed_option("Seed of every draw.")
 @click.option("--mode", type=click.Choice(["n_p", "n"]), default="n_p", show_default=True,
               help="Disperse n_p and derive n per run (Eq. 18), or disperse n itself (the old way).")
@@ -400,7 +400,7 @@ def montecarlo_command(memo_path, like, runs, out, seed, mode, independent, comp
               help="memo.toml: compare with the population predictive (Monte Carlo of this configuration).")
 @click.option("--fit", "fit_path", type=click.Path(path_type=Path), default=None,
               help="Fit folder of this test: compare with its posterior predictive.")
-@out_option("Folder for compare.json and compare.png.", required=True)
+@out_option("Folder for compare.json and compare.png.", inputs="bundle", required=True)
 @click.option("--runs", type=RUNS, default=2000, show_default=True, help="Predicted runs per source.")
 @seed_option("Seed of every draw.")
 @click.option("--mode", type=click.Choice(["n_p", "n"]), default="n_p", show_default=True,
@@ -475,7 +475,7 @@ def pool_command(fitdirs, out, seed, workers, scheduler):
 
 @cli.command("diagnose")
 @click.argument("bundle", type=click.Path(path_type=Path))
-@out_option("Folder for diagnosis.json, diagnosis.md, candidates.csv and the figures.", required=True)
+@out_option("Folder for diagnosis.json, diagnosis.md, candidates.csv and the figures.", inputs="bundle", required=True)
 @seed_option("Seed of every fit of the comparison.")
 @priors_option()
 @click.option("--candidates", default=",".join(CANDIDATE_NAMES), show_default=True,
@@ -529,7 +529,7 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
 @cli.command("campaign", epilog="A campaign TOML (--config), every key optional:\n\n"
              + "\n\n".join("\b\n" + part for part in CAMPAIGN_EXAMPLE.strip().split("\n\n")))
 @click.argument("folder", type=click.Path(path_type=Path))
-@out_option("Folder for every step's outputs and the report (index.html, report.md).", required=True)
+@out_option("Folder for every step's outputs and the report (index.html, report.md).", inputs="folder", required=True)
 @click.option("--config", "config_path", type=click.Path(path_type=Path, exists=True, dir_okay=False), default=None,
               help="Campaign TOML with the options (see below).")
 @parallel_options(default_workers=None, what="tests", note="; overrides --config, default 2")

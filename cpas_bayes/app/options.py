@@ -24,13 +24,15 @@ option             allowed                     why
 ``--scheduler``    ``local`` or an address     the scheduler must answer within 5 s
                    that answers
 ``--priors``       an existing TOML file       read within :func:`cpas_bayes.core.inputs.read_toml`'s limits
-``--out``          a folder, or a path where   never a file; new, empty or written by cpas-bayes
-                   one can be made
+``--out``          a folder, or a path where   never a file; new, empty or written by cpas-bayes;
+                   one can be made, outside    never an input bundle folder or inside one (outputs
+                   every input bundle          would mix with the bundle's own files)
 =================  ==========================  ==========================================================
 """
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import click
@@ -39,7 +41,8 @@ from cpas_bayes.core.errors import InputError
 from cpas_bayes.core.executor import MAX_LOCAL_WORKERS
 from cpas_bayes.core.scheduler_address import SCHEDULER_FIX, scheduler_problem
 from cpas_bayes.core.inputs import read_toml
-from cpas_bayes.core.ownership import check_output
+from cpas_bayes.core.ownership import check_output, check_outside_inputs
+from cpas_bayes.data.bundle_csv import TOML_NAME, bundle_folders
 from cpas_bayes.inference.stopping import STOP_RULES
 from cpas_bayes.loads.budget import MAX_BATCH, MAX_RUNS
 
@@ -102,15 +105,19 @@ def other_command_output(path, command):
     return None
 
 
-def check_out(ctx, param, value):
+def check_out(ctx, param, value, takes_bundles=False):
     """``--out``: the output-folder rule of :mod:`cpas_bayes.core.ownership`, checked while the line is parsed;
-    an empty path (an unset shell variable) and a folder holding another command's output are refused."""
+    an empty path (an unset shell variable) and a folder holding another command's output are refused. For a
+    command that reads bundles (``takes_bundles``), a bundle folder (one holding test.toml) is refused as such
+    first; whether ``--out`` lies inside an input bundle is checked as the command starts (:func:`out_option`)."""
     if value is None:
         return None
     if str(value).strip() == "":
         raise click.BadParameter("an empty path (an unset shell variable?) would write into the current folder. "
                                  "Fix: give the output folder's path", ctx=ctx, param=param)
     value = Path(value)
+    if takes_bundles and (value / TOML_NAME).is_file():
+        _check_out_of_inputs(ctx, param, value, value)
     _refusal_as_bad_parameter(check_output, ctx, param, value)
     found = other_command_output(value, ctx.info_name)
     if found:
@@ -120,6 +127,14 @@ def check_out(ctx, param, value):
                                  f"Fix: give {ctx.info_name} a folder of its own (new, empty, or an earlier "
                                  f"{ctx.info_name} output)", ctx=ctx, param=param)
     return value
+
+
+def _check_out_of_inputs(ctx, param, out, given):
+    """Refuse ``--out`` ``out`` that is or lies inside an input bundle folder: ``given``, or the bundles in it
+    when it is a folder of bundles (a campaign's, whose ``--out`` may sit beside them). A ``given`` that holds no
+    bundle is refused by the command itself, before it writes."""
+    folders = bundle_folders(given)
+    _refusal_as_bad_parameter(lambda v: check_outside_inputs(v, folders), ctx, param, out)
 
 
 def check_fit_folders(ctx, param, value):
@@ -140,10 +155,27 @@ def check_toml_file(ctx, param, value):
     return _refusal_as_bad_parameter(read_toml, ctx, param, value)
 
 
-def out_option(help_text, **kwargs):
-    """``--out`` with its check."""
+def out_option(help_text, inputs=None, **kwargs):
+    """``--out`` with its check. ``inputs`` names the command's parameter holding its input bundle folder (or
+    folder of bundles): ``--out`` may not be one of them or lie inside one
+    (:func:`~cpas_bayes.core.ownership.check_outside_inputs`). Checked as the command starts, before any work:
+    click processes arguments after every option, so ``--out``'s callback cannot."""
     # a str first, so that the callback sees an empty argument as empty (Path("") reads as ".")
-    return click.option("--out", type=click.Path(), callback=check_out, help=help_text, **kwargs)
+    callback = check_out if inputs is None else functools.partial(check_out, takes_bundles=True)
+    option = click.option("--out", type=click.Path(), callback=callback, help=help_text, **kwargs)
+    if inputs is None:
+        return option
+
+    def decorate(command):
+        @functools.wraps(command)     # its click parameters and help come along
+        def checked(**params):
+            if params.get("out") is not None and params.get(inputs) is not None:
+                ctx = click.get_current_context()
+                param = next(p for p in ctx.command.params if p.name == "out")
+                _check_out_of_inputs(ctx, param, Path(params["out"]), params[inputs])
+            return command(**params)
+        return option(checked)
+    return decorate
 
 
 def seed_option(help_text):

@@ -20,7 +20,8 @@ folder whose marker lists every entry in it (and so on down) is the package's;
 the temporary files of an interrupted write (``.NAME.….cpas-tmp``,
 ``.NAME.….cpas-old``) count as the package's too.
 
-:func:`check_output` is the up-front check a command runs on ``--out``;
+:func:`check_output` is the up-front check a command runs on ``--out`` (and
+:func:`check_outside_inputs`: never inside an input bundle folder);
 :func:`claim_folder` makes (or adopts) an output folder and is called by every
 writer that takes a folder; :mod:`cpas_bayes.core.files` creates, replaces and
 records single files and whole folders under this rule.
@@ -280,6 +281,25 @@ def check_output(path, option="--out") -> Path:
         raise OutputError(path, "", f"{which} cannot be written (permission denied)",
                           f"{fix_other} that you can write to, or change the permissions")
     return path
+
+
+def check_outside_inputs(path, inputs, option="--out", what="bundle folder") -> Path:
+    """Refuse an output folder ``path`` that is, or lies inside, one of the input folders ``inputs``, before
+    any work; symbolic links resolved on both sides (a link to a bundle is that bundle).
+
+    A bundle folder is its test.toml, its data.csv and the files a user keeps with them: outputs written
+    into it would be taken for part of the bundle when it is copied, archived or read as an input again.
+    """
+    out = Path(path).resolve()
+    for folder in inputs:
+        resolved = Path(folder).resolve()
+        if out == resolved or out.is_relative_to(resolved):
+            inside = out != resolved
+            beside = resolved.parent / f"{resolved.name}-{out.name if inside else 'out'}"
+            raise OutputError(path, "", f"{option} {'lies inside' if inside else 'is'} the {what} {folder}: "
+                              "the outputs would be written among the bundle's own files",
+                              f"give {option} a folder outside {folder}, e.g. {beside}")
+    return Path(path)
 
 
 def claim_folder(path) -> Path:

@@ -58,6 +58,7 @@ from cpas_bayes.core.errors import BundleError
 from cpas_bayes.data.air_data import LATENCY_PRIOR, VELOCITY_COLUMNS, WIND_SIGMA_WITHOUT_PROFILE, channel_samples, \
     sample_interval
 from cpas_bayes.data.bundle import CSV_NAME, TOML_NAME, FlightTest, with_data
+from cpas_bayes.data.bundle_air import MIN_VELOCITY_SAMPLES, check_declared_rate
 from cpas_bayes.data.logger_events import EventNotFound, detect_release
 from cpas_bayes.physics import flight_path as fp
 from cpas_bayes.physics.atmosphere import TOP_GEOPOTENTIAL_ALTITUDE, standard_density
@@ -119,6 +120,10 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     d = test.data
     spec = test.air_data
     csv = test.source / CSV_NAME if test.source else test.label   # what the refusals below name
+    # read_bundle refuses such a rate; checked here too for a test made in Python (its rate is used below)
+    check_declared_rate(d["time"].to_numpy(float), np.isfinite(d["G"].to_numpy(float)),
+                        spec.rates if spec is not None else {},
+                        test.source / TOML_NAME if test.source else test.label)
     t_a, g = channel_samples(d, "G")
     sigma_a = d["G_sigma"].to_numpy(float)[np.isfinite(d["G"].to_numpy(float))]
     # A record that starts hanging under the carrier (G ≈ 1, lifted, not dragged) is reconstructed from its
@@ -127,6 +132,7 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         release = detect_release(t_a, g).time
     except EventNotFound:   # a fast drop's free fall may sense > 0.5 g of drag: time 0 is release (docs/import.md)
         release = 0.0 if t_a[0] < 0.0 < t_a[-1] else -np.inf
+    first = "the first reading" if release <= t_a[0] else "the first reading after the release"
     after = t_a >= release
     if after.sum() < 10:   # a release found at the record's end: nothing after it is drag against the airspeed
         raise BundleError(csv, "column 'G'", f"the release is found at {release:.3f} s, leaving "
@@ -141,13 +147,8 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
     # a latency puts before the first reading sees the state extended at its first acceleration (≤ 2 s).
     lo, hi = LATENCY_RANGE
     keep = (t_v >= t_a[0]) & (t_v - lo <= t_a[-1])
-    if keep.sum() < 3:
-        raise BundleError(csv, "columns 'v_north', 'v_east', 'v_up'",
-                          f"only {int(keep.sum())} receiver sample(s) are stamped from the first reading of G used "
-                          f"({t_a[0]:g} s, at or after release) to {-lo:g} s before the last ({t_a[-1] + lo:g} s): "
-                          f"a receiver's sample may show the state up to {-lo:g} s after its stamp, which must "
-                          "lie inside the accelerometer's record", "give a record whose accelerometer readings "
-                          f"run from release past at least 3 receiver samples and {-lo:g} s beyond them")
+    if keep.sum() < MIN_VELOCITY_SAMPLES:
+        raise _too_short(csv, t_a, t_v, lo, first)
     t_h, h = channel_samples(d, "altitude")
     h_rows = np.isfinite(d["altitude"].to_numpy(float))
     h_sigma = d["altitude_sigma"].to_numpy(float)[h_rows]
@@ -203,6 +204,36 @@ def logger_channels(test: FlightTest) -> LoggerChannels:
         wind_altitude=np.asarray(w_alt, float), wind_north=np.asarray(w_n, float),
         wind_east=np.asarray(w_e, float), wind_sigma=w_sigma, first_velocity_time=float(t_v[0]),
         first_velocity=vel[0], density_altitude=alt, density_table=table, held_before=bool((~after).any()))
+
+
+def _too_short(csv, t_a, t_v, lo, first):
+    """The refusal of a record whose accelerometer readings do not cover MIN_VELOCITY_SAMPLES receiver samples:
+    those stamped from the first reading used (``first`` says what it is) to -lo s before the last. The fitted
+    latency may be as low as ``lo`` (< 0): a sample then shows the state -lo s after its stamp, which the
+    reconstruction must reach from the readings."""
+    margin, need = -lo, MIN_VELOCITY_SAMPLES
+    end = t_a[-1] - margin
+    usable = int(np.count_nonzero((t_v >= t_a[0]) & (t_v <= end)))
+    after = np.sort(t_v[t_v >= t_a[0]])
+    problem = (f"the accelerometer's record and the receiver's overlap too little: the readings used run from "
+               f"{t_a[0]:g} s ({first}) to {t_a[-1]:g} s, and {usable} receiver sample"
+               f"{' is' if usable == 1 else 's are'} stamped from {t_a[0]:g} s to {end:g} s ({margin:g} s before "
+               f"the last reading), where at least {need} are needed: the receiver's fitted latency may be as low as "
+               f"{lo:g} s (a sample showing the state {margin:g} s after its stamp), so each sample used needs "
+               f"accelerometer readings from its stamp to {margin:g} s past it")
+    if after.size >= need:
+        fix = (f"supply accelerometer readings until at least {float(after[need - 1]) + margin:g} s ({margin:g} s "
+               f"past the {_ordinal(need)} receiver sample from {t_a[0]:g} s on), or receiver samples earlier or "
+               f"more often, at least {need} of them from {t_a[0]:g} s to {end:g} s")
+    else:
+        fix = (f"supply at least {need} receiver samples (v_north, v_east, v_up) stamped from {t_a[0]:g} s on (the "
+               f"record has {after.size}), and accelerometer readings until {margin:g} s past the "
+               f"{_ordinal(need)} of them")
+    return BundleError(csv, "columns 'v_north', 'v_east', 'v_up'", problem, fix)
+
+
+def _ordinal(n):
+    return {1: "first", 2: "second", 3: "third"}.get(n, f"{n}th")
 
 
 # Weather moves density by ±20 % at most from the standard atmosphere; a unit slip (slug/ft³ for kg/m³) by far more.

@@ -26,8 +26,8 @@ import numpy as np
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.inputs import shown
 from cpas_bayes.data import limits
-from cpas_bayes.data.air_data import RATE_CHANNELS, VELOCITY_COLUMNS, WIND_SIGMA_DEFAULT, AirDataSpec, DensityProfile, \
-    WindProfile, rate_warnings, sample_interval
+from cpas_bayes.data.air_data import RATE_CHANNELS, RATE_TOLERANCE, RECEIVER_RATES, VELOCITY_COLUMNS, \
+    WIND_SIGMA_DEFAULT, AirDataSpec, DensityProfile, WindProfile, own_interval, sample_interval
 from cpas_bayes.data.attitude import NORM_TOLERANCE, swing_load_factor
 from cpas_bayes.data.bundle_csv import TOML_NAME, blank_column
 from cpas_bayes.data.limits import check_column, check_value
@@ -140,14 +140,47 @@ def parse_air_tables(doc, reader, logger):
     if logger is False:
         return None
     tables = {key: reader.table(doc, key, "") for key in AIR_TABLES if key in doc}
-    rates = {}
+    rates, unused = {}, ()
     if "rate" in tables:
-        reader.keys(tables["rate"], RATE_CHANNELS, "rate")
+        reader.keys(tables["rate"], RATE_CHANNELS + RECEIVER_RATES, "rate")
         rates = {k: reader.number(tables["rate"], k, "rate.", positive=True, plausible=limits.AIR_DATA["rate"])
                  for k in tables["rate"]}
+        unused = tuple(k for k in rates if k in RECEIVER_RATES)
+        rates = {k: v for k, v in rates.items() if k not in RECEIVER_RATES}
     return AirDataSpec(wind=_wind(reader, tables["wind"]) if "wind" in tables else None,
                        atmosphere=_atmosphere(reader, tables["atmosphere"]) if "atmosphere" in tables else None,
-                       rates=rates)
+                       rates=rates, unused_rates=unused)
+
+
+def receiver_rate_warnings(spec):
+    """validate's words on [rate] keys of the receiver's channels: accepted, not used (the model takes the
+    receiver's velocity and altitude as instantaneous samples stamped late by a fitted latency)."""
+    return [f"test.toml [rate] {key} is not used: the model treats the receiver's velocity and altitude as "
+            "instantaneous samples stamped late by a fitted latency; only the accelerometer's averaging ([rate] G) "
+            f"is modelled. Remove '{key}' to silence this" for key in (spec.unused_rates if spec else ())]
+
+
+def check_declared_rate(time, present, rates, toml_path):
+    """Refuse a declared ``[rate] G`` (Hz) that disagrees with the readings' own rate by more than RATE_TOLERANCE.
+
+    ``time`` is data.csv's time column (s), ``present`` the rows holding an accelerometer reading, ``rates``
+    the declared rates (:class:`AirDataSpec`'s). The rate sets the window the model averages each reading's
+    prediction over (1/rate): on 20 Hz readings a declared 1,000 Hz would leave the averaged-away part of a fast
+    peak to the inflation parameters, silently."""
+    if "G" not in rates:
+        return
+    t = np.asarray(time, float)[np.asarray(present, bool)]
+    interval = own_interval(t)
+    if interval <= 0.0:
+        return
+    declared, shown_rate = float(rates["G"]), 1.0 / interval
+    if abs(declared * interval - 1.0) <= RATE_TOLERANCE:
+        return
+    raise BundleError(toml_path, "key 'rate.G'", f"[rate] G = {declared:g} Hz, but data.csv's time column shows "
+                      f"the accelerometer's {t.size} readings {interval * 1e3:.4g} ms apart, {shown_rate:.4g} Hz "
+                      f"(more than {RATE_TOLERANCE * 100:g} % off): the model would average each reading over "
+                      f"{1e3 / declared:.4g} ms, not the {interval * 1e3:.4g} ms between readings",
+                      f"declare G = {shown_rate:.4g}, or remove the entry (the readings' own spacing is then used)")
 
 
 def refuse_air_tables(doc, reader, logger):
@@ -166,7 +199,8 @@ def refuse_air_tables(doc, reader, logger):
 def refuse_conflicts(names, meta, csv_path):
     """Refuse what data.csv (column ``names``) and test.toml (``meta``) both say, where one would silently
     win: a channel's 1-sigma as a ``<column>_sigma`` column and a [sigma] entry; in a logger bundle ``G``
-    beside the body axes, and a ``density`` column beside an [atmosphere] profile."""
+    beside the body axes, a 1-sigma for the accelerometer form data.csv does not give (``G`` beside the axes,
+    ``accel_*`` beside ``G``), and a ``density`` column beside an [atmosphere] profile."""
     toml_path = Path(csv_path).parent / TOML_NAME
     names, logger = set(names), logger_bundle(names)
     if logger is None:          # neither kind: check_measured_columns says so first
@@ -184,6 +218,24 @@ def refuse_conflicts(names, meta, csv_path):
                           "and accelerometer body axes: two readings of one accelerometer, and one would be "
                           "ignored", "keep G (the sensed load factor, g) or accel_x, accel_y, accel_z (three body "
                           "axes, g), not both")
+    # A 1-sigma for the accelerometer form data.csv does not use would be ignored while the other's is used: with
+    # the three axes, G is their magnitude (or drag component) and its 1-sigma is propagated from theirs.
+    with_axes = "G" not in names and all(c in names for c in ACCEL_AXES)
+    if with_axes or "G" in names:       # else logger_columns refuses the missing accelerometer
+        form, other = (ACCEL_AXES, ("G",)) if with_axes else (("G",), ACCEL_AXES)
+        stated = next((k for k in other if k in meta.sigma), None)
+        if stated:
+            raise BundleError(toml_path, f"key 'sigma.{stated}'", f"a 1-sigma for '{stated}', but data.csv gives "
+                              f"the accelerometer as {', '.join(form)}"
+                              + (", from whose 1-sigmas G's is propagated" if with_axes else "")
+                              + ": this entry would be ignored", f"remove '{stated}' from [sigma]"
+                              + (" and give the axes' 1-sigmas (accel_x = ... there, or accel_x_sigma, ... columns)"
+                                 if with_axes else " (G's 1-sigma is [sigma] G or the column 'G_sigma')"))
+        if with_axes and "G_sigma" in names:
+            raise BundleError(csv_path, "column 'G_sigma'", "a 1-sigma column for G, but data.csv gives the "
+                              "accelerometer as accel_x, accel_y, accel_z, from whose 1-sigmas G's is propagated: "
+                              "the column would be ignored", "remove the column 'G_sigma' and give the axes' "
+                              "1-sigmas (accel_x_sigma, ... columns, or accel_x = ... under [sigma])")
     if "density" in names and meta.air_data is not None and meta.air_data.atmosphere is not None:
         raise BundleError(toml_path, "key 'atmosphere'", "a density profile is given here and as data.csv's column "
                           "'density': two densities for one flight, and one would be ignored",
@@ -377,6 +429,9 @@ def logger_columns(raw, meta, path):
         out["G_sigma"] = _sigma(raw, "G", out["G"], sigma_table, channels["G"], units, path)
         attitude = read_attitude(raw, path, np.zeros(len(raw), bool))   # refuses any quaternion given
     _enough(out["G"], MIN_G_SAMPLES, "G", "accelerometer", path)
+    if meta.air_data is not None:
+        check_declared_rate(blank_column(raw, "time", path), np.isfinite(out["G"]), meta.air_data.rates,
+                            Path(path).parent / TOML_NAME)
 
     v = {c: _channel(raw, c, channels[c], units, path) for c in VELOCITY_COLUMNS}
     given = np.column_stack([np.isfinite(v[c]) for c in VELOCITY_COLUMNS])
@@ -408,11 +463,10 @@ def logger_columns(raw, meta, path):
 
 def air_summary(test):
     """A logger bundle's part of ``cpas-bayes validate``'s summary: ``air_data``, one line such as ``"GNSS
-    velocity (41 samples at 5 Hz), altitude (41 samples), wind profile (3 levels)"``, and ``warnings``, its
-    declared rates that disagree with the samples (:func:`~cpas_bayes.data.air_data.rate_warnings`)."""
+    velocity (41 samples at 5 Hz), altitude (41 samples), wind profile (3 levels)"``."""
     spec, data = test.air_data, test.data
     n_v, n_h = (int(np.isfinite(data[c]).sum()) for c in ("v_north", "altitude"))
-    step = sample_interval(data, "v_north", spec, "v")
+    step = sample_interval(data, "v_north", None, "v")    # the receiver's own samples: no rate is declared
     parts = [f"GNSS velocity ({n_v} samples at {1 / step:.3g} Hz)" if step > 0 else f"GNSS velocity ({n_v} samples)",
              f"altitude ({n_h} samples)"]
     if spec is not None and spec.wind is not None:
@@ -420,4 +474,5 @@ def air_summary(test):
         parts.append("constant wind" if levels == 1 else f"wind profile ({levels} levels)")
     if spec is not None and spec.atmosphere is not None:
         parts.append(f"density profile ({len(spec.atmosphere.altitude)} levels)")
-    return {"air_data": ", ".join(parts), "warnings": rate_warnings(data, spec)}
+    warnings = receiver_rate_warnings(spec)
+    return {"air_data": ", ".join(parts), **({"warnings": warnings} if warnings else {})}

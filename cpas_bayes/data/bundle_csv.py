@@ -1,5 +1,6 @@
 """Reading a bundle's data.csv within stated limits: size, header, row shape, numeric cells; and passing a
-CSV file's leading lines without reading them whole (:func:`skip_lines`, for an import map's ``skip_rows``).
+CSV file's leading lines without reading them whole (:func:`skip_lines`, for an import map's ``skip_rows``);
+which folders are bundles (:func:`bundle_folders`).
 
 The file's size and row count are checked before it is parsed, the header
 before any row, and every row's cell count against the header's (a trailing
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import io
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -23,6 +25,17 @@ from cpas_bayes.data.limits import MAX_COLUMN_NAME, MAX_CSV_BYTES, MAX_CSV_COLUM
 TOML_NAME, CSV_NAME = "test.toml", "data.csv"   # a bundle folder's two files
 _HEADER_FIX = "start data.csv with a comma-separated header such as time,G,G_sigma,..."
 _TRAILING_FIX = "remove the comma at the end of every line (an export option of the spreadsheet or logger)"
+
+
+def bundle_folders(folder) -> list:
+    """The bundle folders ``folder`` names: itself when it holds a test.toml, else its sub-folders that do (a
+    folder of bundles, a campaign's), sorted; none when it is not a folder."""
+    folder = Path(folder)
+    if (folder / TOML_NAME).is_file():
+        return [folder]
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.is_dir() and (p / TOML_NAME).is_file())
 
 
 def _missing(path, other):

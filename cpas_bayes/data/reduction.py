@@ -78,7 +78,6 @@ import numpy as np
 import pandas as pd
 
 from cpas_bayes.core.errors import InputError
-from cpas_bayes.data.air_data import rate_warnings
 from cpas_bayes.data.bundle import TOML_NAME, FlightTest
 from cpas_bayes.data.friction import SCALE_MODES, ScaleFactor, calibrate_scale_factor
 from cpas_bayes.data.peaks import (DEFAULT_PEAK_SMOOTHING, peak_filter_width, peaks_and_load_share,
@@ -178,7 +177,6 @@ class Reduction:
     load_share: tuple
     peak_smoothing: float = DEFAULT_PEAK_SMOOTHING
     air_estimate: object = None   # a logger bundle's best-estimate trajectory (data.air_reconstruction)
-    rate_warnings: tuple = ()     # its declared rates that disagree with the samples (data.air_data)
 
     @property
     def csv_columns(self):
@@ -205,10 +203,9 @@ class Reduction:
 
     @property
     def warnings(self):
-        """What to know before trusting the numbers: a logger bundle's declared rates that disagree with its
-        samples, and its trajectory that misses the receiver."""
+        """What to know before trusting the numbers: a logger bundle's trajectory that misses the receiver."""
         said = self.air_estimate.misfit_warning() if self.air_estimate is not None else None
-        return list(self.rate_warnings) + ([said] if said else [])
+        return [said] if said else []
 
     def to_json(self):
         u = self.test.units
@@ -237,11 +234,10 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
     ``peak_smoothing`` the peak filter's width (s), 0 for raw maxima.
     """
     mode = _check_mode(test, scale)
-    air_estimate, said = None, ()
+    air_estimate = None
     if not test.measured_qbar:
         # A logger bundle: q̄ from the best-estimate trajectory, at the accelerometer's readings.
         from cpas_bayes.data.air_reconstruction import best_estimate_trajectory, with_best_estimate
-        said = tuple(rate_warnings(test.data, test.air_data))   # of the logged channels, replaced below
         air_estimate = best_estimate_trajectory(test)
         test = with_best_estimate(test, air_estimate)
     d = test.data
@@ -279,7 +275,7 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
                              "drop --window, or add load_cell columns to the bundle")
         frame = pd.DataFrame(cols)
         peaks, _ = peaks_and_load_share(cols, intervals, (), width)
-        return Reduction(test, frame, None, peaks, (), peak_smoothing, air_estimate, said)
+        return Reduction(test, frame, None, peaks, (), peak_smoothing, air_estimate)
 
     # Fly-out-corrected (Eq. 13) but unscaled loads and drag areas (Eq. 11, 12).
     axial, axial_s = {}, {}
@@ -341,7 +337,7 @@ def reduce_test(test: FlightTest, scale="constant", windows=None,
 
     # Peaks and load share per stage.
     peaks, shares = peaks_and_load_share(cols, intervals, with_cells, width)
-    return Reduction(test, frame, scale_factor, peaks, shares, peak_smoothing, air_estimate, said)
+    return Reduction(test, frame, scale_factor, peaks, shares, peak_smoothing, air_estimate)
 
 
 # ---------------------------------------------------------------------------

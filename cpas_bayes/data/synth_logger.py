@@ -514,8 +514,8 @@ def simulate_logger_test(truth: LoggerTruth, rng: np.random.Generator, name: str
                        for c, stages in zip(truth.chutes, stated_stages))
     vehicle = Vehicle(weight=stated_weight, weight_sigma=truth.vehicle_weight_sigma, cds=stated_cds,
                       cds_sigma=truth.vehicle_cds_sigma)
-    air_data = AirDataSpec(wind=truth.wind, atmosphere=truth.atmosphere,
-                           rates={"G": truth.accel_rate, "v": truth.gnss_rate, "altitude": truth.gnss_rate})
+    # only the accelerometer's rate: the model takes the receiver's samples as instantaneous (data.air_data)
+    air_data = AirDataSpec(wind=truth.wind, atmosphere=truth.atmosphere, rates={"G": truth.accel_rate})
     test = FlightTest(name=name or f"SYN-{truth.scenario}", phase=truth.scenario, units=SI, vehicle=vehicle,
                       parachutes=parachutes, data=pd.DataFrame(data), air_data=air_data)
     return test, logger_truth_document(truth, trajectory)
