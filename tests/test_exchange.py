@@ -187,16 +187,26 @@ def test_in_the_samplers_drag_area_coordinates_an_exchange_stays_exact_and_swaps
     np.testing.assert_allclose(reefed[:, col["D2.s1.cds_reefed"]], u[:, col["D1.s1.cds_reefed"]], rtol=1e-12)
 
 
-def test_in_peak_time_coordinates_an_exchange_carries_its_jacobian_factor(drogue_pair):
+@pytest.mark.parametrize("one_cut_short", [False, True])
+def test_in_peak_time_coordinates_an_exchange_carries_its_jacobian_factor(drogue_pair, one_cut_short):
     """In peak-time coordinates |∂u/∂θ| = Π s (each stage's seconds to peak per unit n_p) need not be the same
     at θ and at its exchange, so the exchange carried into u is accepted on the u-density ratio times
-    |∂u′/∂u|: with that factor (``log_factor``) the ratio is the θ-posterior ratio again, without it not."""
+    |∂u′/∂u|: with that factor (``log_factor``) the ratio is the θ-posterior ratio again, without it not.
+    Also where one canopy's reefed stage moves in its grown drag area and the other's in its time to peak."""
     from cpas_bayes.inference.coordinates import SamplerTarget, sampling_coordinates
 
     m = drogue_pair
-    coords = sampling_coordinates(m, "peak_time")
-    target = SamplerTarget(m, coords)
     theta = _theta(m, np.random.default_rng(5))
+    reference = theta[0].copy()
+    if one_cut_short:
+        reference[m.index["D1.s1.n_p"]] *= 50.0      # D1's reefed stage peaks after its disreef
+    coords = sampling_coordinates(m, "peak_time", reference)
+    assert ("D1.s1.cds_grown" in coords.names) == one_cut_short and "D2.s1.t_peak" in coords.names
+    target = SamplerTarget(m, coords)
+    if one_cut_short:    # keep the points where both pairings have a grown drag area (a start before T_ref)
+        ok = np.all(np.isfinite([target(coords.to_sampler(e.apply(theta))) for e in m.exchanges()]), axis=0)
+        theta = theta[ok & np.isfinite(target(coords.to_sampler(theta)))]
+        assert len(theta) >= 2
     u = coords.to_sampler(theta)
     unequal = 0
     for e_theta, e_u in zip(m.exchanges(), target.exchanges()):

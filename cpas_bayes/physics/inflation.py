@@ -72,6 +72,7 @@ Monte Carlo engine's, the fused likelihood's) take the integer codes of
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -495,9 +496,24 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     return (out, rate, timing) if with_rate else (out, timing)
 
 
+FILL_KINDS = {"n_p": 0, "peak_time": 1, "grown": 2}   # what a stage's fill column holds (stage_fill_map)
+
+
+class FillMap(NamedTuple):
+    """Each stage's fill constant and the map to it (B, P, K): ``n_p``; ``scale`` s, the seconds to peak per
+    unit n_p; ``log_jacobian`` log|∂n_p/∂u| of the column u that held it; ``grown``, the drag area the
+    unsaturated growth law gains by the stage's reference time T_ref, g = (CDS_i − CDS_start)·(t_ref/t_f)^expopen
+    with t_ref = T_ref − the stage's start (NaN where t_ref ≤ 0)."""
+
+    n_p: np.ndarray
+    scale: np.ndarray
+    log_jacobian: np.ndarray
+    grown: np.ndarray
+
+
 @numba.njit(cache=True, error_model="numpy")   # 0/0 and x/0 as NaN and ±inf: a walker's, not an error
-def _peak_time_kernel(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay,
-                      below_previous, fill_is_peak_time, n_p_out, scale_out):
+def _fill_map_kernel(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay,
+                     below_previous, kind, ref_time, n_p_out, scale_out, jac_out, grown_out):
     B, P = start.shape[:2]
     for b in range(B):
         for p in range(P):
@@ -505,32 +521,50 @@ def _peak_time_kernel(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k,
             for k in range(n_stages[p]):
                 cds_i = cds_stage[b, p, k]
                 growth = cds_i - held
+                e = expopen[b, p, k]
                 scale = diameter[p] * np.sqrt(abs(growth) / cds_o[b, p]) / v_start[b, p, k]
-                n_p = fill[b, p, k] / scale if fill_is_peak_time else fill[b, p, k]
+                ratio = (ck[b, p, k] * cds_i - held) / growth if growth > 0.0 else 1.0
+                r_pow = ratio ** compiled_peak_exponent(e, decay)
+                u = fill[b, p, k]
+                t_ref = ref_time[p, k] - start[b, p, k]
+                if kind[p, k] == 1:            # seconds to peak: n_p = t_fp/s
+                    n_p = u / scale
+                    jac = -np.log(scale)
+                elif kind[p, k] == 2:          # drag area grown by t_ref: t_f = t_ref·(growth/g)^(1/expopen)
+                    if growth > 0.0 and u > 0.0 and e > 0.0 and t_ref > 0.0:
+                        n_p = t_ref * (growth / u) ** (1.0 / e) * r_pow / scale
+                        jac = np.log(n_p) - np.log(e) - np.log(u)
+                    else:
+                        n_p = np.nan
+                        jac = np.nan
+                else:
+                    n_p = u
+                    jac = 0.0
+                t_fp = n_p * scale if growth > 0.0 else 0.0
+                t_f = t_fp / r_pow if growth > 0.0 else 0.0
                 n_p_out[b, p, k] = n_p
                 scale_out[b, p, k] = scale
+                jac_out[b, p, k] = jac
+                grown_out[b, p, k] = growth * (t_ref / t_f) ** e if growth > 0.0 and t_ref > 0.0 else np.nan
                 if k + 1 < n_stages[p]:     # the drag area the next stage starts from, as the law holds it
-                    ratio = (ck[b, p, k] * cds_i - held) / growth if growth > 0.0 else 1.0
-                    r_pow = ratio ** compiled_peak_exponent(expopen[b, p, k], decay)
-                    t_fp = n_p * scale if growth > 0.0 else 0.0
-                    t_f = t_fp / r_pow if growth > 0.0 else 0.0
                     held = compiled_stage_drag_area(start[b, p, k + 1] - start[b, p, k], held, cds_i, t_f, t_fp,
-                                                    expopen[b, p, k], ck[b, p, k], t_k[b, p, k], decay,
-                                                    below_previous)
+                                                    e, ck[b, p, k], t_k[b, p, k], decay, below_previous)
 
 
-def peak_time_scales(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay="linear",
-                     below_previous="drop", fill_is_peak_time=False):
-    """(n_p, s) of every stage (B, P, K): s = D_o·sqrt(|CDS_i − CDS_start|/CDS_o)/V_i, the seconds from
-    the stage's start to its peak per unit n_p, so that t_fp = n_p·s (Eqs. 14, 15 and 17: t_f·(…)^(1/expopen)
-    is n_p's fill time).
+def stage_fill_map(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay="linear",
+                   below_previous="drop", kind=0, ref_time=1.0):
+    """:class:`FillMap` of every stage (B, P, K) whose fill column (``fill``) holds, per stage, what ``kind``
+    (P, K, codes of :data:`FILL_KINDS`) says: n_p; the seconds from the stage's start to its peak,
+    t_fp = n_p·s with s = D_o·sqrt(|CDS_i − CDS_start|/CDS_o)/V_i (Eqs. 14, 15 and 17: t_f·(…)^(1/expopen)
+    is n_p's fill time); or the drag area grown by the time ``ref_time`` (P, K; on the record's clock, so that
+    it is where the data see it whatever the stage's start).
 
-    ``fill`` holds n_p, or with ``fill_is_peak_time`` the times to peak t_fp, whose n_p is then t_fp/s. A
-    stage's s depends on the earlier stages only (through the drag area held at its start), so one pass in
-    stage order inverts the map. The sampler's peak-time coordinates
-    (:mod:`cpas_bayes.inference.coordinates`) move in t_fp: the data fix a stage's peak far better than
-    n_p, which trades off with its start along a curve. At a stage that does not grow (t_fp = 0 in the law)
-    s uses |CDS_i − CDS_start|, which keeps the map a bijection.
+    A stage's s, its over-inflation ratio and CDS_start depend on the earlier stages only, so one pass in
+    stage order inverts the map. The sampler's coordinates (:mod:`cpas_bayes.inference.coordinates`) move
+    in t_fp where the data see a stage's peak, and in the drag area grown where the stage is cut short by the
+    next before it fills: there the data see only the growing curve, whose n_p and ε trade off along it. At
+    a stage that does not grow (t_fp = 0 in the law) s uses |CDS_i − CDS_start|, which keeps the peak-time
+    map a bijection; the grown drag area is then undefined (NaN: outside the coordinates' support).
     """
     start = np.ascontiguousarray(start, dtype=float)
     B, P, K = start.shape
@@ -538,9 +572,20 @@ def peak_time_scales(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, 
              for a in (cds_stage, fill, expopen, ck, t_k, v_start)]
     cds_o = np.ascontiguousarray(np.broadcast_to(np.asarray(cds_o, float), (B, P)))
     diameter = np.ascontiguousarray(np.broadcast_to(np.asarray(diameter, float), (P,)))
+    kind = np.ascontiguousarray(np.broadcast_to(np.asarray(kind, np.int64), (P, K)))
+    ref_time = np.ascontiguousarray(np.broadcast_to(np.asarray(ref_time, float), (P, K)))
     n_stages = np.asarray(n_stages, dtype=np.int64)
-    n_p, scale = np.zeros((B, P, K)), np.ones((B, P, K))
+    out = [np.zeros((B, P, K)), np.ones((B, P, K)), np.zeros((B, P, K)), np.full((B, P, K), np.nan)]
     with np.errstate(all="ignore"):
-        _peak_time_kernel(start, stage[0], cds_o, diameter, *stage[1:], n_stages, decay_code(decay),
-                          below_previous_code(below_previous), bool(fill_is_peak_time), n_p, scale)
-    return n_p, scale
+        _fill_map_kernel(start, stage[0], cds_o, diameter, *stage[1:], n_stages, decay_code(decay),
+                         below_previous_code(below_previous), kind, ref_time, *out)
+    return FillMap(*out)
+
+
+def peak_time_scales(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay="linear",
+                     below_previous="drop", fill_is_peak_time=False):
+    """(n_p, s) of every stage (B, P, K) (:func:`stage_fill_map`); ``fill`` holds n_p, or with
+    ``fill_is_peak_time`` the times to peak t_fp = n_p·s."""
+    fmap = stage_fill_map(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay,
+                          below_previous, int(bool(fill_is_peak_time)))
+    return fmap.n_p, fmap.scale

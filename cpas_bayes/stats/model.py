@@ -66,7 +66,7 @@ import math
 import numpy as np
 
 from cpas_bayes.data.bundle import FlightTest
-from cpas_bayes.physics.inflation import (below_previous_code, cluster_drag_area, decay_code, peak_time_scales,
+from cpas_bayes.physics.inflation import (below_previous_code, cluster_drag_area, decay_code, stage_fill_map,
                                           stage_role, stage_tag)
 from cpas_bayes.stats.cluster_form import chute_prefixes, stage_exchanges, start_prior
 from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
@@ -353,13 +353,13 @@ class TestModel:
             n_stages=self.stages_per_chute, decay=self.decay, fill_constant="n_p",
             below_previous=self.below_previous, with_rate=with_rate, rate_half_width=half)
 
-    def fill_scales(self, theta, peak_times=False):
-        """(n_p, s) of every stage (B, P, K) at θ (B, D), t_fp = n_p·s (:func:`peak_time_scales`); with
-        ``peak_times`` θ's n_p columns hold the times to peak t_fp, and n_p is the one giving them."""
+    def fill_map(self, theta, kind=0, ref_time=1.0):
+        """:class:`FillMap` of every stage (B, P, K) at θ (B, D) whose n_p columns hold what ``kind`` (P, K)
+        says: n_p, the seconds to peak t_fp = n_p·s, or the drag area grown by ``ref_time`` (:func:`stage_fill_map`)."""
         stage = self.gather_stages(np.atleast_2d(theta))
-        return peak_time_scales(stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter, stage["n_p"],
-                                stage["expopen"], stage["ck"], stage["tk"], self.stage_start_airspeed(stage),
-                                self.stages_per_chute, self.decay, self.below_previous, peak_times)
+        return stage_fill_map(stage["start"], stage["cds_stage"], stage["cds_o"], self.diameter, stage["n_p"],
+                              stage["expopen"], stage["ck"], stage["tk"], self.stage_start_airspeed(stage),
+                              self.stages_per_chute, self.decay, self.below_previous, kind, ref_time)
 
     def predict(self, theta):
         theta = np.atleast_2d(theta)
