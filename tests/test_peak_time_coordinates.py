@@ -12,7 +12,7 @@ from scipy import stats
 
 from cpas_bayes.data.bundle import read_bundle
 from cpas_bayes.data.reduction import reduce_test
-from cpas_bayes.inference.coordinates import PeakTimeCoordinates, SamplerTarget, sampling_coordinates
+from cpas_bayes.inference.coordinates import RIDGE_DROP, PeakTimeCoordinates, SamplerTarget, sampling_coordinates
 from cpas_bayes.inference.fit import SamplerOptions, prepare_model, sample_posterior
 from cpas_bayes.physics.inflation import cluster_drag_area, peak_time_scales, stage_fill_map
 
@@ -200,9 +200,15 @@ def test_walkers_spread_along_a_cut_short_stages_ridge_keep_its_grown_drag_area(
     tail = (1 - prior.cdf(eps_after)) / (1 - prior.cdf(eps_before))
     assert stats.kstest(tail, "uniform").pvalue > 0.01
     np.testing.assert_allclose(coords.to_sampler(coords.to_model(spread)), spread, rtol=1e-10)   # still u
-    ruled_out = coords.spread_along_ridges(u, np.random.default_rng(6), lambda x: np.where(np.arange(len(x)) % 2, 0.0, -np.inf))
-    np.testing.assert_array_equal(ruled_out[::2], u[::2])
-    np.testing.assert_array_equal(ruled_out[1::2], spread[1::2])
+    # a spread point the density puts more than RIDGE_DROP below its start (or rules out) is not taken
+    def density(x):
+        flat = np.where(np.arange(len(x)) % 3 == 0, -np.inf, 0.0)
+        return np.where((np.arange(len(x)) % 3 == 1) & np.any(x != u, axis=1), -RIDGE_DROP - 0.1, flat)
+
+    ruled_out = coords.spread_along_ridges(u, np.random.default_rng(6), density)
+    np.testing.assert_array_equal(ruled_out[0::3], u[0::3])
+    np.testing.assert_array_equal(ruled_out[1::3], u[1::3])
+    np.testing.assert_array_equal(ruled_out[2::3], spread[2::3])
     plain = sampling_coordinates(m, "peak_time", theta[0])
     assert plain.ridge_columns() == [] and plain.spread_along_ridges(u, np.random.default_rng(6), None) is u
 

@@ -28,6 +28,9 @@ COORDINATES = ("drag_area", "model", "peak_time")   # reefed drag areas R_k, θ 
 # short sits at the kink where its peak meets the next start (replica 0 of the Main SBC: exactly 1.0), and the
 # posterior runs from there along the cut-short ridge, which the time to peak bends (see PeakTimeCoordinates).
 NEAR_CUT_OFF = 0.8
+# A starting walker spread along such a stage's ridge keeps the spread point if its log density is at most this
+# far below its start's (2.4 sd in one dimension): along a real ridge it is flat (0.1 nat over replica 0's).
+RIDGE_DROP = 3.0
 
 
 class DragAreaCoordinates:
@@ -169,7 +172,8 @@ class PeakTimeCoordinates:
     def spread_along_ridges(self, u, rng, density):
         """Starting walkers u (W, D) with each cut-short stage's drag area (R_k = ε_k·CDS_o, or the last stage's
         CDS_o) drawn from its prior above the walker's own, its grown drag area g held, so that the data fit is
-        kept; a walker whose spread point the posterior ``density`` (in u) rules out keeps its start.
+        kept; a walker whose spread point the posterior ``density`` (in u) puts more than ``RIDGE_DROP`` below its
+        start keeps its start (the data see most of a stage that peaks late in its span: no ridge to spread on).
 
         Why: the MAP of such a stage sits at the ridge's end (the fill just done at T_ref, the kink where the
         peak meets the next start) and its Laplace ball is tiny along the ridge, so differential evolution,
@@ -186,7 +190,8 @@ class PeakTimeCoordinates:
             with np.errstate(invalid="ignore"):
                 q = rng.uniform(np.clip(prior.cdf(spread[:, j] / scale), 0.0, 1.0 - 1e-12), 1.0 - 1e-12)
             spread[:, j] = np.asarray(prior.ppf(q), float) * scale
-        ok = np.isfinite(density(spread))
+        new = np.asarray(density(spread), float)
+        ok = np.isfinite(new) & (new >= np.asarray(density(u), float) - RIDGE_DROP)
         return np.where(ok[:, None], spread, u)
 
     def _pick(self, x, values):
