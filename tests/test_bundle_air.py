@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pandas as pd
 import pytest
-import tomli_w
+from bundle_writer import write_by_hand
 
 from cpas_bayes.core.errors import BundleError
 from cpas_bayes.core.units import UNIT_SYSTEMS
@@ -49,12 +49,7 @@ DOC = {
 
 def write_logger(folder, doc=None, rows=None, header=None):
     """A logger bundle written by hand: test.toml from ``doc``, data.csv with empty cells for absent keys."""
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "test.toml").write_text(tomli_w.dumps(DOC if doc is None else doc), encoding="utf-8")
-    header = header or HEADER
-    lines = [",".join(header)] + [",".join(repr(r[c]) if c in r else "" for c in header) for r in rows or ROWS]
-    (folder / "data.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return folder
+    return write_by_hand(folder, DOC if doc is None else doc, rows or ROWS, header or HEADER)
 
 
 def edited(**changes):

@@ -25,7 +25,7 @@ import shutil
 
 import numpy as np
 import pytest
-import tomli_w
+from bundle_writer import write_by_hand
 
 from cpas_bayes.app.cli import main
 from cpas_bayes.core.errors import BundleError
@@ -66,12 +66,7 @@ def doc_with(**changes):
 
 def write_logger(folder, doc=None, rows=None, header=None):
     """test.toml from ``doc`` and data.csv from ``rows`` (empty cells for absent keys); returns the folder."""
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "test.toml").write_text(tomli_w.dumps(DOC if doc is None else doc), encoding="utf-8")
-    header = header or HEADER
-    lines = [",".join(header)] + [",".join(repr(r[c]) if c in r else "" for c in header) for r in rows or ROWS]
-    (folder / "data.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return folder
+    return write_by_hand(folder, DOC if doc is None else doc, rows or ROWS, header or HEADER)
 
 
 def run(capsys, *args):

@@ -31,15 +31,20 @@ def _near_prior_median(model, rng, n):
     return lo + (hi - lo) * rng.uniform(size=(n, lo.size))
 
 
-def test_peak_time_scales_give_the_laws_time_to_peak_and_invert():
-    rng = np.random.default_rng(3)
-    B, P, K = 4, 2, 3
+def _random_stages(rng, B, P, K):
+    """The stage law's arguments for B walkers of P parachutes (two diameters) of K stages at random, and their n_p."""
     args = dict(start=np.cumsum(rng.uniform(0.5, 2.0, (B, P, K)), axis=2),
                 cds_stage=np.sort(rng.uniform(5.0, 80.0, (B, P, K)), axis=2), cds_o=rng.uniform(80.0, 90.0, (B, P)),
                 diameter=np.array([10.0, 10.5]), expopen=rng.uniform(0.8, 3.0, (B, P, K)),
                 ck=rng.uniform(1.0, 1.4, (B, P, K)), t_k=rng.uniform(0.1, 0.5, (B, P, K)),
                 v_start=rng.uniform(40.0, 90.0, (B, P, K)))
-    n_p = rng.uniform(2.0, 12.0, (B, P, K))
+    return args, rng.uniform(2.0, 12.0, (B, P, K))
+
+
+def test_peak_time_scales_give_the_laws_time_to_peak_and_invert():
+    rng = np.random.default_rng(3)
+    B, P, K = 4, 2, 3
+    args, n_p = _random_stages(rng, B, P, K)
     _, timing = cluster_drag_area(np.array([0.0]), n_fill=n_p, **args)
     out_n_p, scale = peak_time_scales(fill=n_p, n_stages=[K, K], **args)
     np.testing.assert_array_equal(out_n_p, n_p)
@@ -54,12 +59,7 @@ def test_peak_time_scales_give_the_laws_time_to_peak_and_invert():
 def test_the_grown_drag_area_is_the_laws_growth_by_its_reference_time_and_inverts():
     rng = np.random.default_rng(4)
     B, P, K = 5, 2, 3
-    args = dict(start=np.cumsum(rng.uniform(0.5, 2.0, (B, P, K)), axis=2),
-                cds_stage=np.sort(rng.uniform(5.0, 80.0, (B, P, K)), axis=2), cds_o=rng.uniform(80.0, 90.0, (B, P)),
-                diameter=np.array([10.0, 10.5]), expopen=rng.uniform(0.8, 3.0, (B, P, K)),
-                ck=rng.uniform(1.0, 1.4, (B, P, K)), t_k=rng.uniform(0.1, 0.5, (B, P, K)),
-                v_start=rng.uniform(40.0, 90.0, (B, P, K)))
-    n_p = rng.uniform(2.0, 12.0, (B, P, K))
+    args, n_p = _random_stages(rng, B, P, K)
     ref_time = args["start"].max(axis=0) + rng.uniform(0.05, 0.6, (P, K))   # on the record's clock
     _, timing = cluster_drag_area(np.array([0.0]), n_fill=n_p, **args)
     fmap = stage_fill_map(fill=n_p, n_stages=[K, K], ref_time=ref_time, **args)
