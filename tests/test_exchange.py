@@ -200,7 +200,7 @@ def test_in_peak_time_coordinates_an_exchange_carries_its_jacobian_factor(drogue
     reference = theta[0].copy()
     if one_cut_short:
         reference[m.index["D1.s1.n_p"]] *= 50.0      # D1's reefed stage peaks after its disreef
-    coords = sampling_coordinates(m, "peak_time", reference)
+    coords = sampling_coordinates(m, "grown" if one_cut_short else "peak_time", reference)
     assert ("D1.s1.cds_grown" in coords.names) == one_cut_short and "D2.s1.t_peak" in coords.names
     target = SamplerTarget(m, coords)
     if one_cut_short:    # keep the points where both pairings have a grown drag area (a start before T_ref)

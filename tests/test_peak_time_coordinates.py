@@ -12,7 +12,7 @@ from scipy import stats
 
 from cpas_bayes.data.bundle import read_bundle
 from cpas_bayes.data.reduction import reduce_test
-from cpas_bayes.inference.coordinates import RIDGE_DROP, PeakTimeCoordinates, SamplerTarget, sampling_coordinates
+from cpas_bayes.inference.coordinates import RIDGE_DROP, RIDGE_ROOM, PeakTimeCoordinates, SamplerTarget, sampling_coordinates
 from cpas_bayes.inference.fit import SamplerOptions, prepare_model, sample_posterior
 from cpas_bayes.physics.inflation import cluster_drag_area, peak_time_scales, stage_fill_map
 
@@ -89,7 +89,7 @@ def test_the_map_is_a_bijection_with_the_determinants_jacobian(drogue_model, cut
     reference = theta[0].copy()
     first_reefed = m.index[f"{m.chute_prefix[0]}.s1.n_p"]
     reference[first_reefed] *= 50.0       # so slow that the disreef comes before its peak
-    coords = sampling_coordinates(m, "peak_time", reference if cut_short else None)
+    coords = sampling_coordinates(m, "grown" if cut_short else "peak_time", reference if cut_short else None)
     assert isinstance(coords, PeakTimeCoordinates)
     expected = [m.names[j].replace(".n_p", ".cds_grown" if cut_short and j == first_reefed else ".t_peak")
                 for j in coords.columns]
@@ -187,7 +187,7 @@ def test_walkers_spread_along_a_cut_short_stages_ridge_keep_its_grown_drag_area(
     reference = theta[0].copy()
     prefix = m.chute_prefix[0]
     reference[m.index[f"{prefix}.s1.n_p"]] *= 50.0
-    coords = sampling_coordinates(m, "peak_time", reference)
+    coords = sampling_coordinates(m, "grown", reference)
     (j, c, prior), = coords.ridge_columns()
     assert (j, c) == (m.index[f"{prefix}.s1.eps"], m.index[f"{prefix}.cds_o"])
     u = coords.to_sampler(theta)
@@ -196,8 +196,9 @@ def test_walkers_spread_along_a_cut_short_stages_ridge_keep_its_grown_drag_area(
     np.testing.assert_array_equal(spread[:, others], u[:, others])     # g, CDS_o, every other column held
     eps_before, eps_after = u[:, j] / u[:, c], spread[:, j] / spread[:, c]
     assert np.all(eps_after >= eps_before - 1e-12) and np.mean(eps_after > eps_before + 1e-6) > 0.9
-    # drawn from ε's prior above the start: the conditional probabilities P(ε > ε_after | ε > ε_before) are uniform
-    tail = (1 - prior.cdf(eps_after)) / (1 - prior.cdf(eps_before))
+    # drawn from ε's prior between the start and its RIDGE_ROOM quantile: uniform in that stretch's quantiles
+    tail = (RIDGE_ROOM - prior.cdf(eps_after)) / (RIDGE_ROOM - prior.cdf(eps_before))
+    assert np.all(prior.cdf(eps_after) <= RIDGE_ROOM + 1e-12)
     assert stats.kstest(tail, "uniform").pvalue > 0.01
     np.testing.assert_allclose(coords.to_sampler(coords.to_model(spread)), spread, rtol=1e-10)   # still u
     # a spread point the density puts more than RIDGE_DROP below its start (or rules out) is not taken
@@ -209,7 +210,7 @@ def test_walkers_spread_along_a_cut_short_stages_ridge_keep_its_grown_drag_area(
     np.testing.assert_array_equal(ruled_out[0::3], u[0::3])
     np.testing.assert_array_equal(ruled_out[1::3], u[1::3])
     np.testing.assert_array_equal(ruled_out[2::3], spread[2::3])
-    plain = sampling_coordinates(m, "peak_time", theta[0])
+    plain = sampling_coordinates(m, "grown", theta[0])
     assert plain.ridge_columns() == [] and plain.spread_along_ridges(u, np.random.default_rng(6), None) is u
 
 
@@ -220,7 +221,7 @@ def test_a_last_stage_cut_short_by_the_records_end_spreads_its_full_open_drag_ar
     prefix = m.chute_prefix[0]
     last = int(m.stages_per_chute[0])
     reference[m.index[f"{prefix}.s{last}.n_p"]] *= 50.0      # full open still growing when the record ends
-    coords = sampling_coordinates(m, "peak_time", reference)
+    coords = sampling_coordinates(m, "grown", reference)
     assert f"{prefix}.s{last}.cds_grown" in coords.names
     (j, c, prior), = coords.ridge_columns()
     assert j == m.index[f"{prefix}.cds_o"] and c is None
@@ -228,7 +229,11 @@ def test_a_last_stage_cut_short_by_the_records_end_spreads_its_full_open_drag_ar
     spread = coords.spread_along_ridges(u, np.random.default_rng(8), lambda x: np.zeros(len(x)))
     others = np.arange(u.shape[1]) != j
     np.testing.assert_array_equal(spread[:, others], u[:, others])
-    assert np.all(spread[:, j] >= u[:, j] - 1e-9) and np.all(prior.cdf(spread[:, j]) <= 1.0)
+    assert np.all(spread[:, j] >= u[:, j] - 1e-9) and np.all(prior.cdf(spread[:, j]) <= RIDGE_ROOM + 1e-12)
+    # walkers already in the prior's last 1 % stay where they are (they would all land on the bound)
+    high = u.copy()
+    high[:, j] = prior.ppf(0.995)
+    np.testing.assert_array_equal(coords.spread_along_ridges(high, np.random.default_rng(8), lambda x: np.zeros(len(x))), high)
 
 
 @pytest.mark.slow

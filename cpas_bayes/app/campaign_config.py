@@ -37,7 +37,7 @@ class CampaignConfig:
     fit_tau_factor: float = 50.0
     fit_check_every: int = 500
     fit_proposal: str = "adaptive"        # ESS rule: "adaptive" (independence move after a warm-up) or "de"
-    fit_coordinates: str = "peak_time"    # where the walkers move (inference.coordinates); "model": θ as written
+    fit_coordinates: str = "grown"        # where the walkers move (inference.coordinates); "model": θ as written
     workers: int = 2
     diagnose: str = "screen"              # "screen", "full" or "off"
     candidates: tuple = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")

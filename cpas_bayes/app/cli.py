@@ -280,9 +280,9 @@ def synth_command(scenario, effect, magnitude, seed, out):
               help="With --stop ess: 'adaptive' mixes in an independence move fitted to each ensemble's draws "
                    "after a warm-up (τ ~15× shorter); 'pooled' the same move fitted to all ensembles' warm-up "
                    "draws (the diagnosis' fits: faster across a slow direction); 'de' differential evolution alone.")
-@click.option("--coordinates", type=click.Choice(COORDINATES), default="peak_time", show_default=True,
-              help="Where the walkers move (same posterior): 'peak_time' drag areas ε·CDS_o and times to peak (or "
-                   "drag area grown, if cut short); 'drag_area' the drag areas; 'model' θ as written (README).")
+@click.option("--coordinates", type=click.Choice(COORDINATES), default="grown", show_default=True,
+              help="Where the walkers move (same posterior): 'grown' drag areas ε·CDS_o, times to peak (drag area "
+                   "grown if cut short); 'drag_area', 'peak_time' one of these; 'model' θ as written (README).")
 def fit_command(bundle, out, seed, priors, decay, below_previous, workers, scheduler, ensembles, stop, ess_target,
                 max_steps, proposal, coordinates):
     """Posterior of every inflation parameter of one flight test (emcee).

@@ -12,10 +12,11 @@ triangular: each R_k column divides by its own parachute's CDS_o column). Draws 
 and their log density back to θ's, before anything downstream reads them: the posterior is the same
 distribution, only the sampler's path through it changes (tested: the sampled law matches in both).
 
-The other choice, ``"peak_time"`` (:class:`PeakTimeCoordinates`), does that and also replaces each
-stage's n_p by its time from start to peak, for the same reason: the data fix when a stage peaks, and n_p
-trades off with the stage's start along that constraint; a stage cut short before its peak moves in the
-drag area it has grown by then. Every coordinate object has ``names``, ``to_sampler``, ``to_model``,
+``"peak_time"`` (:class:`PeakTimeCoordinates`) replaces each stage's n_p by its time from start to peak
+instead, for the same reason: the data fix when a stage peaks, and n_p trades off with the stage's start
+along that constraint (what the diagnosis' fits use). ``"grown"``, the fit's default, does both, and a
+stage cut short before its peak moves in the drag area it has grown by then, its walkers started along
+the ridge that leaves open. Every coordinate object has ``names``, ``to_sampler``, ``to_model``,
 ``log_jacobian`` and ``inverse`` (θ and log|∂θ/∂u| in one pass).
 """
 
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-COORDINATES = ("drag_area", "model", "peak_time")   # reefed drag areas R_k, θ as the model has it, R_k and fills
+COORDINATES = ("drag_area", "grown", "model", "peak_time")   # R_k; R_k and fills; θ as written; times to peak
 # A stage whose MAP peak comes this late in its span moves in its grown drag area: the MAP of a stage cut
 # short sits at the kink where its peak meets the next start (replica 0 of the Main SBC: exactly 1.0), and the
 # posterior runs from there along the cut-short ridge, which the time to peak bends (see PeakTimeCoordinates).
@@ -31,6 +32,7 @@ NEAR_CUT_OFF = 0.8
 # A starting walker spread along such a stage's ridge keeps the spread point if its log density is at most this
 # far below its start's (2.4 sd in one dimension): along a real ridge it is flat (0.1 nat over replica 0's).
 RIDGE_DROP = 3.0
+RIDGE_ROOM = 0.99   # ... and draws its drag area from its prior's quantiles between its own and this one
 
 
 class DragAreaCoordinates:
@@ -87,7 +89,8 @@ class PeakTimeCoordinates:
     start, or the record's end), the drag area grown by then, g = (CDS_i − CDS_start)·(t_ref/t_f)^expopen
     with t_ref = T_ref − start (m², ``…cds_grown``; T_ref on the record's clock). Which stages are cut short,
     and their T_ref, are read at ``reference`` (the MAP) and then fixed, so the map is one bijection for the
-    whole run; without a reference every stage is t_fp.
+    whole run; without a reference every stage is t_fp. Without ``drag_areas`` each ε_k stays (``"peak_time"``,
+    which takes no reference).
 
     s = D_o·sqrt(|CDS_i − CDS_start|/CDS_o)/V_i and t_f = t_fp/(…)^(1/expopen) depend on the stage's start,
     its drag areas, its expopen and the earlier stages, not on its n_p, so the map is triangular and
@@ -101,7 +104,9 @@ class PeakTimeCoordinates:
     is what they fix.
     """
 
-    def __init__(self, model, reference=None):
+    def __init__(self, model, reference=None, drag_areas=True):
+        if reference is not None and not drag_areas:
+            raise ValueError("a stage's grown drag area moves beside its reefed drag area: give drag_areas=True")
         self.model = model
         self.names = list(model.names)
         P, K = len(model.chute_prefix), int(np.max(model.stages_per_chute))
@@ -127,7 +132,8 @@ class PeakTimeCoordinates:
                         self.names[model.index[name]] = f"{prefix}.s{k + 1}.t_peak"
         self.columns, self._chute, self._stage = (np.array(a, dtype=int) for a in (columns, chute, stage))
         self._grown = self.kind[self._chute, self._stage] == 2
-        self.drag_area = DragAreaCoordinates(model)     # and each ε_k as its drag area R_k = ε_k·CDS_o
+        # and each ε_k as its drag area R_k = ε_k·CDS_o
+        self.drag_area = DragAreaCoordinates(model) if drag_areas else _KeptReefingRatios(model)
         for j in self.drag_area.eps_columns:
             self.names[j] = self.drag_area.names[j]
 
@@ -172,7 +178,7 @@ class PeakTimeCoordinates:
     def spread_along_ridges(self, u, rng, density):
         """Starting walkers u (W, D) with each cut-short stage's drag area (R_k = ε_k·CDS_o, or the last stage's
         CDS_o) drawn from its prior above the walker's own, its grown drag area g held, so that the data fit is
-        kept; a walker whose spread point the posterior ``density`` (in u) puts more than ``RIDGE_DROP`` below its
+        kept (up to the prior's RIDGE_ROOM quantile); a walker whose spread point the posterior ``density`` (in u) puts more than ``RIDGE_DROP`` below its
         start keeps its start (the data see most of a stage that peaks late in its span: no ridge to spread on).
 
         Why: the MAP of such a stage sits at the ridge's end (the fill just done at T_ref, the kink where the
@@ -188,8 +194,12 @@ class PeakTimeCoordinates:
         for j, c, prior in ridges:
             scale = spread[:, c] if c is not None else 1.0
             with np.errstate(invalid="ignore"):
-                q = rng.uniform(np.clip(prior.cdf(spread[:, j] / scale), 0.0, 1.0 - 1e-12), 1.0 - 1e-12)
-            spread[:, j] = np.asarray(prior.ppf(q), float) * scale
+                above = np.clip(prior.cdf(spread[:, j] / scale), 0.0, 1.0)
+            # a start within the prior's last 1 % stays: every such walker would land on the bound alike, and
+            # walkers that share a value, or a ratio to CDS_o, are linearly dependent (emcee refuses the state)
+            room = np.isfinite(above) & (above < RIDGE_ROOM)
+            q = rng.uniform(np.where(room, above, 0.0), RIDGE_ROOM)
+            spread[:, j] = np.where(room, np.asarray(prior.ppf(q), float) * scale, spread[:, j])
         new = np.asarray(density(spread), float)
         ok = np.isfinite(new) & (new >= np.asarray(density(u), float) - RIDGE_DROP)
         return np.where(ok[:, None], spread, u)
@@ -223,6 +233,21 @@ class PeakTimeCoordinates:
         return self.inverse(u)[1]
 
 
+class _KeptReefingRatios:
+    """The identity in place of :class:`DragAreaCoordinates`: every ε_k stays as the model has it."""
+
+    eps_columns = np.array([], dtype=int)
+
+    def __init__(self, model):
+        self.names = list(model.names)
+
+    def to_sampler(self, theta):
+        return np.array(theta, dtype=float, copy=True)
+
+    def inverse(self, u):
+        return np.array(u, dtype=float, copy=True), np.zeros(np.shape(u)[:-1])
+
+
 def _starts_before(model, name, time):
     """Whether the stage start ``name`` lies before ``time`` under its prior (to 1 − 1e-9), so that its grown
     drag area, undefined for a start after ``time``, cuts off none of the posterior; a start the model does
@@ -240,10 +265,11 @@ def sampling_coordinates(model, choice="drag_area", reference=None):
         raise ValueError(f"coordinates must be one of {', '.join(COORDINATES)}, not {choice!r}")
     if choice == "model" or not all(hasattr(model, a) for a in ("chute_prefix", "index", "names")):
         return None
-    if choice == "peak_time":
+    if choice in ("peak_time", "grown"):
         if not hasattr(model, "fill_map"):
             return None
-        coords = PeakTimeCoordinates(model, reference)
+        coords = PeakTimeCoordinates(model, reference, True) if choice == "grown" else PeakTimeCoordinates(model,
+                                                                                                          None, False)
     else:
         coords = DragAreaCoordinates(model)
     return coords if coords else None

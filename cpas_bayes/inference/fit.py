@@ -26,7 +26,7 @@ Procedure
    proposal frozen, the warm-up dropped and the ESS rule run on the rest. The
    τ rule keeps DE alone (its 50 τ criterion is for one kernel from the start).
    The walkers move in :mod:`cpas_bayes.inference.coordinates`' u (``SamplerOptions.coordinates``;
-   by default ``"peak_time"``: each reefed stage's drag area ε·CDS_o in place of ε and each stage's time to
+   by default ``"grown"``: each reefed stage's drag area ε·CDS_o in place of ε and each stage's time to
    peak — or, cut short before its peak, the drag area it grew — in place of n_p, the Jacobian in the
    density); the draws and their log density are mapped back to θ before anything else reads them.
 4. When to stop (``SamplerOptions.stop``, :mod:`cpas_bayes.inference.stopping`):
@@ -89,7 +89,7 @@ class SamplerOptions:
     rhat_target: float = RHAT_TARGET  # ... and its R-hat at most this
     stop_on: tuple = ()               # ESS rule: only these parameters' ESS and R-hat (default: every one)
     proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (_schedule); "de" alone
-    coordinates: str = "peak_time"    # where the walkers move (inference.coordinates): "model" is θ itself
+    coordinates: str = "grown"        # where the walkers move (inference.coordinates): "model" is θ itself
     map_starts: int = 4
     workers: int = 2
     progress: bool = True
