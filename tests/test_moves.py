@@ -241,3 +241,20 @@ def test_a_log_column_that_is_not_positive_gives_no_proposal():
     draws[5, 0] = -0.1
     assert fit_proposal(draws, LOG_COLUMNS) is None
     assert fit_proposal(draws, np.zeros(6, bool)) is not None
+
+
+def test_a_continued_chunk_is_not_refused_for_walkers_drawn_together():
+    """emcee refuses a start whose walkers are linearly dependent; the lockstep chunks refuse it for a fresh
+    start only, not for a chain continued from its last state (which raised mid-run on a Main SBC replica)."""
+    import cpas_bayes.inference.fit as fit
+
+    def log_prob(x):
+        return -0.5 * np.sum(np.atleast_2d(x) ** 2, axis=1)
+
+    x = np.random.default_rng(0).normal(size=(8, 1))
+    together = np.hstack([x, 2.0 * x])          # the second column a multiple of the first
+    state = np.random.RandomState(1).get_state()
+    with pytest.raises(ValueError, match="condition number"):
+        fit._chunk_task((log_prob, (together, None, state), 5, 1, None))
+    chain, lp, _, _ = fit._chunk_task((log_prob, (together, log_prob(together), state), 5, 1, None))
+    assert chain.shape == (5, 8, 2) and np.all(np.isfinite(lp))

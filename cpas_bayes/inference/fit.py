@@ -303,8 +303,11 @@ def _chunk_task(job):
     """
     model, (coords, log_prob, random_state), n_stored, store_every, proposal = job
     sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves(proposal, exchanges_of(model)))
+    # emcee's check that the walkers are linearly independent is for a fresh start (log_prob None); a chain
+    # continued from its last state is not one: the check raised mid-run on Main SBC replica 13, ending the fit
+    # where the convergence checks over the ensembles should judge it
     sampler.run_mcmc(emcee.State(coords, log_prob=log_prob, random_state=random_state), n_stored,
-                     thin_by=store_every, progress=False)
+                     thin_by=store_every, progress=False, skip_initial_state_check=log_prob is not None)
     b = sampler.backend
     return b.get_chain(), b.get_log_prob(), b.accepted.copy(), sampler.random_state
 
