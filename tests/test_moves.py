@@ -258,3 +258,22 @@ def test_a_continued_chunk_is_not_refused_for_walkers_drawn_together():
         fit._chunk_task((log_prob, (together, None, state), 5, 1, None))
     chain, lp, _, _ = fit._chunk_task((log_prob, (together, log_prob(together), state), 5, 1, None))
     assert chain.shape == (5, 8, 2) and np.all(np.isfinite(lp))
+
+
+def test_starting_walkers_the_density_rules_out_are_replaced_by_nudged_allowed_ones():
+    import cpas_bayes.inference.fit as fit
+    from emcee.ensemble import walkers_independent
+
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(16, 3))
+    u[[2, 5], 1] = np.nan                               # where the coordinates are undefined
+
+    def density(x):
+        return np.where(np.all(np.isfinite(x), axis=1), 0.0, -np.inf)
+
+    out = fit._inside_coordinates(u, density, np.random.default_rng(3))
+    assert np.all(np.isfinite(out)) and walkers_independent(out) and not walkers_independent(u)
+    keep = np.setdiff1d(np.arange(16), [2, 5])
+    np.testing.assert_array_equal(out[keep], u[keep])   # the allowed walkers are kept as they were
+    near = np.min(np.abs(out[[2, 5]][:, None, :] - u[keep][None]).max(axis=2), axis=1)
+    assert np.all(near < 0.01) and np.all(near > 0)       # each a nudged copy of an allowed walker

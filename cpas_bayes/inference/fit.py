@@ -256,6 +256,8 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
             if hasattr(coords, "spread_along_ridges"):   # cut-short stages' walkers along their ridge
                 inits = [coords.spread_along_ridges(i, np.random.default_rng([options.seed, e, 2]), target)
                          for e, i in enumerate(inits)]
+            inits = [_inside_coordinates(i, target, np.random.default_rng([options.seed, e, 3]))
+                     for e, i in enumerate(inits)]
         runs, stopping = run_ensembles(target, inits, seeds, options, ckpts, executor)
         seconds = time.perf_counter() - started
         for run in runs if coords else ():   # back to θ: the draws and their log density
@@ -413,6 +415,21 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
     worst = check.statistics.worst() if check.statistics else (np.nan, np.nan, np.nan)
     return runs, {"stop": "ess", "ess_bulk_min": worst[0], "ess_tail_min": worst[1], "rhat_max": worst[2],
                   "proposal": options.proposal}
+
+
+def _inside_coordinates(u, density, rng):
+    """Starting walkers u (W, D) with each one that ``density`` rules out (a Laplace-ball point where a grown
+    drag area is undefined: the stage does not grow there) replaced by a walker that it allows, nudged by 1e-3
+    of the walkers' spread so that no two coincide; emcee refuses NaN and dependent walkers as a start (Main SBC
+    replica 13)."""
+    bad = ~np.isfinite(density(u))
+    good = np.flatnonzero(~bad)
+    if not bad.any() or good.size < 2:
+        return u
+    out = np.array(u, dtype=float, copy=True)
+    spread = np.std(out[good], axis=0)
+    out[bad] = out[rng.choice(good, bad.sum())] + 1e-3 * spread * rng.normal(size=(bad.sum(), out.shape[1]))
+    return out
 
 
 def _in_theta(model, chain):
