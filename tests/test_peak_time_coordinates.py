@@ -14,7 +14,7 @@ from cpas_bayes.data.bundle import read_bundle
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.inference.coordinates import RIDGE_DROP, RIDGE_ROOM, PeakTimeCoordinates, SamplerTarget, sampling_coordinates
 from cpas_bayes.inference.fit import SamplerOptions, prepare_model, sample_posterior
-from cpas_bayes.physics.inflation import cluster_drag_area, peak_time_scales, stage_fill_map
+from cpas_bayes.physics.inflation import FILL_KINDS, cluster_drag_area, stage_fill_map
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "cpas_bayes" / "data" / "examples"
 
@@ -41,17 +41,18 @@ def _random_stages(rng, B, P, K):
     return args, rng.uniform(2.0, 12.0, (B, P, K))
 
 
-def test_peak_time_scales_give_the_laws_time_to_peak_and_invert():
+def test_the_fill_maps_time_to_peak_is_the_laws_and_inverts():
     rng = np.random.default_rng(3)
     B, P, K = 4, 2, 3
     args, n_p = _random_stages(rng, B, P, K)
     _, timing = cluster_drag_area(np.array([0.0]), n_fill=n_p, **args)
-    out_n_p, scale = peak_time_scales(fill=n_p, n_stages=[K, K], **args)
+    out_n_p, scale = stage_fill_map(fill=n_p, n_stages=[K, K], **args)[:2]
     np.testing.assert_array_equal(out_n_p, n_p)
     grows = timing.t_f > 0     # a stage starting below the drag area held (an overshoot) does not grow
     assert grows.mean() > 0.8
     np.testing.assert_allclose((n_p * scale)[grows], timing.t_fp[grows], rtol=1e-12)   # t_fp = n_p·s
-    back, same_scale = peak_time_scales(fill=n_p * scale, n_stages=[K, K], fill_is_peak_time=True, **args)
+    back, same_scale = stage_fill_map(fill=n_p * scale, n_stages=[K, K], kind=FILL_KINDS["peak_time"],
+                                      **args)[:2]
     np.testing.assert_allclose(back, n_p, rtol=1e-12)
     np.testing.assert_allclose(same_scale, scale, rtol=1e-12)
 

@@ -140,18 +140,18 @@ class PeakTimeCoordinates:
     @staticmethod
     def _cut_short(model, reference):
         """{(p, k): t_ref} of the stages whose peak falls late in their span at ``reference`` (after
-        ``NEAR_CUT_OFF`` of the time to the next stage's start, or for the last, to the record's end); t_ref is that next start (or the record's end): where the
-        data last see the stage grow, and the drag area the next stage starts from."""
+        ``NEAR_CUT_OFF`` of the time to the next stage's start, or for the last, to the record's end); t_ref
+        is that next start (or the record's end): where the data last see the stage grow, and the drag area
+        the next stage starts from."""
         theta = np.atleast_2d(np.asarray(reference, float))
-        fmap = model.fill_map(theta)
         start = model.gather_stages(theta)["start"][0]
         record = getattr(getattr(model, "obs", None), "time", None)
         end = float(np.max(record)) if record is not None and np.size(record) else np.inf
         seen = np.full(start.shape, np.inf)       # where the data stop seeing each stage grow
         for p, n in enumerate(model.stages_per_chute):
             seen[p, :n] = np.append(start[p, 1:n], end)
-        t_fp = fmap.n_p[0] * fmap.scale[0]
-        grown = model.fill_map(theta, 0, np.where(np.isfinite(seen), seen, 0.0)).grown[0]
+        fmap = model.fill_map(theta, 0, np.where(np.isfinite(seen), seen, 0.0))   # n_p and s do not read T_ref
+        t_fp, grown = fmap.n_p[0] * fmap.scale[0], fmap.grown[0]
         short = (seen > start) & np.isfinite(seen) & (t_fp > NEAR_CUT_OFF * (seen - start)) & np.isfinite(grown) & (grown > 0)
         return {(int(p), int(k)): float(seen[p, k]) for p, k in zip(*np.nonzero(short))}
 

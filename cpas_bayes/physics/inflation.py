@@ -580,12 +580,3 @@ def stage_fill_map(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_
         _fill_map_kernel(start, stage[0], cds_o, diameter, *stage[1:], n_stages, decay_code(decay),
                          below_previous_code(below_previous), kind, ref_time, *out)
     return FillMap(*out)
-
-
-def peak_time_scales(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay="linear",
-                     below_previous="drop", fill_is_peak_time=False):
-    """(n_p, s) of every stage (B, P, K) (:func:`stage_fill_map`); ``fill`` holds n_p, or with
-    ``fill_is_peak_time`` the times to peak t_fp = n_p·s."""
-    fmap = stage_fill_map(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_start, n_stages, decay,
-                          below_previous, int(bool(fill_is_peak_time)))
-    return fmap.n_p, fmap.scale
