@@ -73,9 +73,9 @@ class DragAreaCoordinates:
     def log_jacobian(self, u):
         """log|∂θ/∂u| (…,): −Σ_k log CDS_o; −inf where a CDS_o is not positive (outside every prior)."""
         cds = np.asarray(u, float)[..., self.cds_columns]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out = -np.log(cds).sum(axis=-1)
-        return np.where(np.all(cds > 0, axis=-1), out, -np.inf)
+        positive = cds > 0
+        out = -np.log(np.where(positive, cds, 1.0)).sum(axis=-1)   # no log of ≤ 0, no errstate (slow per call)
+        return np.where(np.all(positive, axis=-1), out, -np.inf)
 
     def inverse(self, u):
         """(θ, log|∂θ/∂u|) from u (…, D)."""
@@ -221,8 +221,8 @@ class PeakTimeCoordinates:
         fmap = self.model.fill_map(np.reshape(theta, (-1, len(self.names))), self.kind, self.ref_time)
         n_p, jac = self._pick(u, fmap.n_p), self._pick(u, fmap.log_jacobian)
         theta[..., self.columns] = n_p
-        good = np.all(np.isfinite(jac) & np.isfinite(n_p), axis=-1) & np.isfinite(drag_jac)
-        return theta, np.where(good, np.sum(np.where(np.isfinite(jac), jac, 0.0), axis=-1) + drag_jac, -np.inf)
+        total = np.sum(jac, axis=-1) + drag_jac          # NaN or ±inf wherever any term is not finite
+        return theta, np.where(np.isfinite(total) & np.all(np.isfinite(n_p), axis=-1), total, -np.inf)
 
     def to_model(self, u):
         """θ from u (…, D)."""
@@ -298,8 +298,10 @@ class SamplerTarget:
     def __call__(self, u):
         u = np.atleast_2d(np.asarray(u, float))
         theta, jac = self.coords.inverse(u)
-        out = np.full(u.shape[0], -np.inf)
         ok = np.isfinite(jac)
+        if ok.all():
+            return self.model(theta) + jac
+        out = np.full(u.shape[0], -np.inf)
         if ok.any():
             out[ok] = self.model(theta[ok]) + jac[ok]
         return out

@@ -496,6 +496,15 @@ def cluster_drag_area(t, start, cds_stage, cds_o, diameter, n_fill, expopen, ck,
     return (out, rate, timing) if with_rate else (out, timing)
 
 
+def _kernel_array(a, shape, dtype=np.float64):
+    """``a`` as the compiled kernels take it: of ``dtype`` and ``shape`` (broadcast, then contiguous); an array
+    that already has both is passed through in its own layout (the sampler's coordinates call this map once
+    per walker batch, where copying a dozen small arrays cost three times the kernel)."""
+    if isinstance(a, np.ndarray) and a.shape == shape and a.dtype == dtype:
+        return a
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype), shape))
+
+
 FILL_KINDS = {"n_p": 0, "peak_time": 1, "grown": 2}   # what a stage's fill column holds (stage_fill_map)
 
 
@@ -568,15 +577,12 @@ def stage_fill_map(start, cds_stage, cds_o, diameter, fill, expopen, ck, t_k, v_
     """
     start = np.ascontiguousarray(start, dtype=float)
     B, P, K = start.shape
-    stage = [np.ascontiguousarray(np.broadcast_to(np.asarray(a, float), (B, P, K)))
-             for a in (cds_stage, fill, expopen, ck, t_k, v_start)]
-    cds_o = np.ascontiguousarray(np.broadcast_to(np.asarray(cds_o, float), (B, P)))
-    diameter = np.ascontiguousarray(np.broadcast_to(np.asarray(diameter, float), (P,)))
-    kind = np.ascontiguousarray(np.broadcast_to(np.asarray(kind, np.int64), (P, K)))
-    ref_time = np.ascontiguousarray(np.broadcast_to(np.asarray(ref_time, float), (P, K)))
+    stage = [_kernel_array(a, (B, P, K)) for a in (cds_stage, fill, expopen, ck, t_k, v_start)]
+    cds_o, diameter = _kernel_array(cds_o, (B, P)), _kernel_array(diameter, (P,))
+    kind, ref_time = _kernel_array(kind, (P, K), np.int64), _kernel_array(ref_time, (P, K))
     n_stages = np.asarray(n_stages, dtype=np.int64)
     out = [np.zeros((B, P, K)), np.ones((B, P, K)), np.zeros((B, P, K)), np.full((B, P, K), np.nan)]
-    with np.errstate(all="ignore"):
-        _fill_map_kernel(start, stage[0], cds_o, diameter, *stage[1:], n_stages, decay_code(decay),
-                         below_previous_code(below_previous), kind, ref_time, *out)
+    # error_model="numpy": a walker's 0/0 is NaN, and compiled code raises no numpy warnings to silence
+    _fill_map_kernel(start, stage[0], cds_o, diameter, *stage[1:], n_stages, decay_code(decay),
+                     below_previous_code(below_previous), kind, ref_time, *out)
     return FillMap(*out)
