@@ -130,7 +130,7 @@ def check_tree(fit, budget=CHECK_DRAW_BUDGET, rng=None):
     draw) and observed_data ``acc``/``lc``, all recomputed from ``fit.model``.
     Also carries the mean prediction in constant_data (``acc_mean``, ``lc_mean``).
     """
-    import arviz as az
+    import arviz_base as azb
 
     rng = as_rng(rng)
     model, tree = fit.model, fit.tree
@@ -147,7 +147,7 @@ def check_tree(fit, budget=CHECK_DRAW_BUDGET, rng=None):
     lc_ids = [model.parachutes[int(i)].id for i in obs.lc_index]
     channels = ("acc", "lc") if lc_ids else ("acc",)
     replicated = {"acc": acc_rep, "lc": lc_rep}
-    out = az.from_dict(
+    out = azb.from_dict(
         {
             "posterior": {n: post[n].values for n in model.names},
             "log_likelihood": {name[3:]: pred[name].reshape(shape + pred[name].shape[1:])

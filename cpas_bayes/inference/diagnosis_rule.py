@@ -129,12 +129,12 @@ def passes(diff, se, options: DiagnoseOptions):
 def compare_table(baseline, candidates):
     """``arviz.compare`` over the baseline and the candidates (ranked by elpd), from the PSIS-LOO each
     already holds: given the trees, it recomputed every one (on a Main, 1.5–2 s each in this process)."""
-    import arviz as az
+    import arviz_stats as azs
 
     results = {BASELINE: baseline.loo, **{n: c.loo for n, c in candidates.items()}}
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=UserWarning)
-        table = az.compare(results)
+        table = azs.compare(results)
     return table
 
 

@@ -272,7 +272,7 @@ def _subset_indices(n_chains, n_draws, budget):
 def build_datatree(model, sampling, rng, budget=1000):
     """The ArviZ DataTree of a fit: posterior (+ derived), stats, pointwise log-likelihood,
     posterior predictive, observed and constant data."""
-    import arviz as az
+    import arviz_base as azb
 
     chains, lp, ensemble = sampling.stacked()
     n_chain, n_draw, _ = chains.shape
@@ -305,7 +305,7 @@ def build_datatree(model, sampling, rng, budget=1000):
     lc_pp = lc_pp.reshape(shape + lc_pp.shape[1:])
 
     coords = {"chain": np.arange(n_chain), "time": obs.time, "load_cell": lc_ids}
-    tree = az.from_dict(
+    tree = azb.from_dict(
         {
             "posterior": posterior,
             "sample_stats": {"lp": lp},
@@ -344,20 +344,20 @@ def _predict_in_batches(model, theta, batch=256):
 
 def convergence(tree, sampling, rhat_max=1.01, ess_min=400):
     """R-hat across ensembles (nested R-hat: walkers grouped by ensemble), ESS, τ, acceptance."""
-    import arviz as az
+    import arviz_stats as azs
 
     post = tree["posterior"]
     names = list(sampling.names)
     superchains = np.asarray(post["ensemble"].values)
     if len(set(superchains.tolist())) > 1:
-        rhat = az.rhat_nested(tree, var_names=names, superchain_ids=superchains)
+        rhat = azs.rhat_nested(tree, var_names=names, superchain_ids=superchains)
     else:
         # One ensemble: no independent chains to compare; walker-chain R-hat is the
         # best available (optimistic, since walkers share the ensemble's moves).
-        rhat = az.rhat(tree, var_names=names)
-    ess_bulk = az.ess(tree, var_names=names, method="bulk")
+        rhat = azs.rhat(tree, var_names=names)
+    ess_bulk = azs.ess(tree, var_names=names, method="bulk")
     # the 90 % interval's endpoints, as the ESS stopping rule (ArviZ 1.x's default reads 0.89 as quantiles)
-    ess_tail = az.ess(tree, var_names=names, method="tail", prob=TAIL_QUANTILES)
+    ess_tail = azs.ess(tree, var_names=names, method="tail", prob=TAIL_QUANTILES)
 
     def values(ds):
         return {n: float(np.asarray(ds[n].values)) for n in names}

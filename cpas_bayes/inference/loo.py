@@ -49,19 +49,19 @@ def smoothed_log_weights(log_lik: xr.DataArray, r_eff):
 
 def psis_loo(tree, var_name="total", r_eff=None):
     """``arviz.loo`` of ``var_name`` with pointwise values, from weights smoothed here."""
-    import arviz as az
+    import arviz_stats as azs
 
     r_eff = relative_efficiency(tree) if r_eff is None else r_eff
     weights, k = smoothed_log_weights(tree["log_likelihood"][var_name], r_eff)
     with warnings.catch_warnings():
         # High k̂ is reported by the callers, bin by bin; ArviZ's generic warning adds nothing.
         warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
-        return az.loo(tree, var_name=var_name, pointwise=True, reff=r_eff, log_weights=weights, pareto_k=k)
+        return azs.loo(tree, var_name=var_name, pointwise=True, reff=r_eff, log_weights=weights, pareto_k=k)
 
 
 def loo_pit(tree, var_names, r_eff=None):
     """``arviz.loo_pit`` of ``var_names`` (each observed, replicated and with a log-likelihood), weights smoothed here."""
-    import arviz as az
+    import arviz_stats as azs
 
     r_eff = relative_efficiency(tree) if r_eff is None else r_eff
     pairs = {v: smoothed_log_weights(tree["log_likelihood"][v], r_eff) for v in var_names}
@@ -69,4 +69,4 @@ def loo_pit(tree, var_names, r_eff=None):
     k = xr.Dataset({v: kk for v, (_, kk) in pairs.items()})
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
-        return az.loo_pit(tree, var_names=list(var_names), log_weights=weights, pareto_k=k)
+        return azs.loo_pit(tree, var_names=list(var_names), log_weights=weights, pareto_k=k)
