@@ -12,6 +12,7 @@ such as (1 + φ) or one that ignores the autocorrelation (a factor 3 at φ = 0.5
 
 import json
 
+import emcee
 import numpy as np
 import pytest
 from scipy.stats import multivariate_normal, norm
@@ -168,7 +169,7 @@ def test_an_interrupted_ess_run_resumes_to_the_same_draws(tmp_path, proposal):
     shorter = tmp_path / "shorter"
     shorter.mkdir()
     run_ensembles(model, inits[:2], seeds[:2], SamplerOptions(stop="ess", check_every=100, store_every=1,
-                                                               max_steps=100, proposal=proposal),
+                                                               max_steps=50, proposal=proposal),
                   checkpoints=[shorter / "a.h5", shorter / "b.h5"])
     (shorter / "b.h5").replace(ckpts[1])      # ensemble 1 one chunk behind the others, as a kill leaves it
     resumed, seen_resumed = run_ensembles(model, inits, seeds, options, checkpoints=ckpts)
@@ -181,23 +182,24 @@ def test_an_interrupted_ess_run_resumes_to_the_same_draws(tmp_path, proposal):
 
 
 def test_the_adaptive_proposal_cuts_tau_and_samples_the_same_target():
-    """After its warm-up (one DE chunk, two adaptation chunks) the independence proposal fitted to each
-    ensemble's own draws leaves τ at a few steps where DE alone needs about twelve; the kept draws come
-    after the warm-up and recover the target's covariance; a run too short for the warm-up uses DE alone."""
+    """After its warm-up (one DE chunk, adaptation chunks until the acceptance stops rising) the independence
+    proposal fitted to each ensemble's own draws leaves τ at a few steps where DE alone needs about twelve; the
+    kept draws come after the warm-up and recover the target's covariance; a run too short for the warm-up uses
+    DE alone."""
     model, inits, seeds = _toy(walkers=12)
     de, _ = run_ensembles(model, inits, seeds, _ess_options(2000))
     adaptive, seen = run_ensembles(model, inits, seeds, _ess_options(2000, proposal="adaptive"))
     assert np.max([r.tau for r in adaptive]) < np.min([np.max(r.tau) for r in de]) / 3
     assert seen["proposal"] == "adaptive" and seen["ess_bulk_min"] >= 2000 and seen["rhat_max"] <= 1.01
-    assert all(r.burn >= 200 for r in adaptive)                          # warm-up 100 + 2·50 steps dropped
+    assert all(r.burn >= 100 for r in adaptive)                  # warm-up of at least 50 + 2·25 steps dropped
     flat = np.concatenate([r.draws.reshape(-1, 3) for r in adaptive])
     truth = np.linalg.inv(model.precision)
     np.testing.assert_allclose(np.cov(flat.T), truth, atol=0.08)
     assert np.all(np.abs(flat.mean(axis=0)) < 0.06)
     short, _ = run_ensembles(model, inits, seeds, SamplerOptions(stop="ess", ess_target=10**6, check_every=100,
-                                                                 store_every=1, max_steps=200, proposal="adaptive"))
+                                                                 store_every=1, max_steps=100, proposal="adaptive"))
     plain, _ = run_ensembles(model, inits, seeds, SamplerOptions(stop="ess", ess_target=10**6, check_every=100,
-                                                                 store_every=1, max_steps=200, proposal="de"))
+                                                                 store_every=1, max_steps=100, proposal="de"))
     np.testing.assert_array_equal(short[0].draws, plain[0].draws)
 
 
@@ -214,15 +216,13 @@ def test_the_pooled_proposal_is_one_fit_to_every_ensembles_window_and_samples_th
     chains = [rng.normal(loc, 1.0, size=(40, 8, 3)) for loc in (0.0, 2.0)]   # (steps, walkers, D), apart
     stores = [SimpleNamespace(model=None, sampler=SimpleNamespace(
         ndim=3, backend=SimpleNamespace(get_chain=lambda discard=0, c=c: c[discard:]))) for c in chains]
-    windows = {40: (10, 40)}
-    pooled = fit_module._proposals_at(stores, 40, windows, None, pooled=True)
-    own = fit_module._proposals_at(stores, 40, windows, None)
+    pooled = fit_module._proposals_at(stores, (10, 40), pooled=True)
+    own = fit_module._proposals_at(stores, (10, 40))
     both = fit_proposal(np.concatenate([c[10:40].reshape(-1, 3) for c in chains]))
     assert pooled[0] is pooled[1]
     np.testing.assert_allclose(pooled[0][0], both[0])
     np.testing.assert_allclose(pooled[0][1], both[1])
     np.testing.assert_allclose(own[1][0], chains[1][10:40].reshape(-1, 3).mean(axis=0))
-    assert fit_module._proposals_at(stores, 50, windows, own) is own          # frozen after the warm-up
 
     model, inits, seeds = _toy(walkers=12)
     runs, seen = run_ensembles(model, inits, seeds, _ess_options(2000, proposal="pooled"))
@@ -313,3 +313,71 @@ def test_stop_on_names_a_parameter_of_the_model_or_is_refused():
     assert seen["ess_bulk_min"] == pytest.approx(float(np.min(c.ess_bulk)))     # reported: every parameter's
     with pytest.raises(ValueError, match="stop_on names 'nope', not a parameter of the model"):
         run_ensembles(model, inits, seeds, _ess_options(300, stop_on=("nope",)))
+
+
+def test_the_warm_up_schedules():
+    """Plateau (the default): chunks of a quarter check_every, at least 25 stored steps, a DE chunk of two; fixed
+    (the diagnosis's fits): the DE chunk of check_every and exactly two adaptation chunks of half."""
+    from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER
+    from cpas_bayes.inference.fit import _schedule
+
+    plateau = _schedule(SamplerOptions())
+    assert (plateau.de, plateau.step) == (50, 25) and plateau.adaptations[0] >= 2 < plateau.adaptations[1]
+    assert (_schedule(SamplerOptions(check_every=250)).step, _schedule(SamplerOptions(check_every=2000)).step) == (25, 100)
+    fixed = _schedule(DIAGNOSIS_SAMPLER)
+    assert DIAGNOSIS_SAMPLER.warm_up == "fixed" and (fixed.de, fixed.step, fixed.adaptations) == (40, 20, (2, 2))
+    assert _schedule(SamplerOptions(proposal="de")).de == 0
+    with pytest.raises(ValueError, match="warm_up must be one of"):
+        SamplerOptions(warm_up="long")
+
+
+def test_the_acceptance_read_from_the_chain_is_emcees_own():
+    """The plateau rule reads each chunk's acceptance from the stored chain (a resumed run has no per-chunk
+    counts): with every step stored it is emcee's count of accepted moves."""
+    from types import SimpleNamespace
+
+    from cpas_bayes.inference.fit import _acceptance
+
+    model, inits, seeds = _toy(n_ensembles=1, walkers=12)
+    sampler = emcee.EnsembleSampler(12, 3, model, vectorize=True)
+    sampler.run_mcmc(inits[0], 400, progress=False)
+    store = SimpleNamespace(sampler=sampler)
+    assert _acceptance([store], 1, 400, 1) == pytest.approx(np.mean(sampler.backend.accepted) / 400, abs=1e-2)
+    thinned = emcee.EnsembleSampler(12, 3, model, vectorize=True)
+    thinned.run_mcmc(inits[0], 400, thin_by=5, progress=False)
+    # five moves between stored steps: the share that moved, 1 − (1 − a)^5, solved for a. Rejections come in
+    # runs (a walker in the tail refuses several proposals), so the reading is a little low: a monotone measure,
+    # which is all a rule on its rise needs
+    assert 0.8 < _acceptance([SimpleNamespace(sampler=thinned)], 1, 400, 5) / (
+        np.mean(sampler.backend.accepted) / 400) < 1.0
+
+
+def test_the_plateau_warm_up_stops_when_the_acceptance_stops_rising():
+    """The warm-up ends at the first adaptation chunk (after the second) whose acceptance rose less than 10 %
+    over the chunk before's, and the run reports its length; a proposal that keeps improving keeps it going."""
+    from cpas_bayes.inference import fit as fit_module
+
+    model, inits, seeds = _toy(walkers=12)
+    original, read = fit_module._acceptance, []
+
+    def recorded(stores, lo, hi, store_every):
+        read.append(original(stores, lo, hi, store_every))
+        return read[-1]
+
+    def rising(stores, lo, hi, store_every):   # a proposal that keeps improving by 20 % a chunk, then stops
+        read.append(min(0.1 * 1.2 ** (len(read) + 1), 0.3))
+        return read[-1]
+
+    try:
+        fit_module._acceptance = recorded
+        runs, seen = run_ensembles(model, inits, seeds, _ess_options(2000, proposal="adaptive"))
+        assert seen["warm_up_steps"] == 50 + 25 * len(read) and len(read) >= 2
+        assert read[-1] < 1.1 * read[-2] and all(b >= 1.1 * a for a, b in zip(read[:-2], read[1:-1]))
+        assert all(r.burn >= seen["warm_up_steps"] for r in runs)
+        read.clear()
+        fit_module._acceptance = rising
+        runs, seen = run_ensembles(model, inits, seeds, _ess_options(2000, proposal="adaptive"))
+    finally:
+        fit_module._acceptance = original
+    # 0.12, 0.144, 0.173, 0.207, 0.249, 0.299, 0.3: the seventh chunk rose < 10 %
+    assert seen["warm_up_steps"] == 50 + 7 * 25 and len(read) == 7

@@ -44,7 +44,7 @@ DISCREPANCY = "discrepancy"
 # stopped at 500 steps (acceptance 0.14) against 2,000 (0.05) in θ, and the diagnosis took 94 s against 149 s.
 DIAGNOSIS_SAMPLER = SamplerOptions(n_ensembles=2, check_every=200, max_steps=2000, stop="ess", ess_target=400,
                                    tau_rtol=0.25, map_starts=2, workers=2, progress=True, proposal="pooled",
-                                   coordinates="peak_time")
+                                   coordinates="peak_time", warm_up="fixed")
 
 BREATHING_BAND_HZ = (0.1, 3.0)
 FULL_MODE_FLOOR_SHARE = 0.5   # mode full samples a term whose MAP size reaches this share of its floor

@@ -22,8 +22,9 @@ Procedure
    alike in log coordinates). Under the ESS rule with ``proposal="adaptive"``
    (the default) each ensemble then fits a multivariate-t independence proposal
    to its own draws and mixes it in (70 %), which leaves τ at 5–20 steps
-   (:func:`_schedule`): one DE chunk of warm-up, two adaptation chunks, then the
-   proposal frozen, the warm-up dropped and the ESS rule run on the rest. The
+   (:func:`_schedule`): one DE chunk of warm-up, adaptation chunks until the
+   acceptance stops rising, then the proposal frozen, the warm-up dropped and the
+   ESS rule run on the rest. The
    τ rule keeps DE alone (its 50 τ criterion is for one kernel from the start).
    The walkers move in :mod:`cpas_bayes.inference.coordinates`' u (``SamplerOptions.coordinates``;
    by default ``"grown"``: each reefed stage's drag area ε·CDS_o in place of ε and each stage's time to
@@ -70,6 +71,7 @@ from cpas_bayes.stats.model import TestModel
 
 
 PROPOSALS = ("de", "adaptive", "pooled")
+WARM_UPS = ("plateau", "fixed")
 
 
 @dataclass(frozen=True)
@@ -79,7 +81,7 @@ class SamplerOptions:
     seed: int = 0
     n_ensembles: int = 4
     walkers: int | None = None        # default: 2·D + 2, even
-    check_every: int = 500            # steps between convergence checks (and checkpoints)
+    check_every: int = 500            # steps between convergence checks and checkpoints (adaptive: see _schedule)
     max_steps: int = 20000
     store_every: int = 5              # keep every k-th step in the chain file
     stop: str = "ess"                 # "ess": ESS and R-hat targets (module docstring); "tau": the τ rule below
@@ -90,6 +92,7 @@ class SamplerOptions:
     stop_on: tuple = ()               # ESS rule: only these parameters' ESS and R-hat (default: every one)
     proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (_schedule); "de" alone
     coordinates: str = "grown"        # where the walkers move (inference.coordinates): "model" is θ itself
+    warm_up: str = "plateau"          # the adaptive proposal's warm-up (_schedule): "plateau" or "fixed"
     map_starts: int = 4
     workers: int = 2
     progress: bool = True
@@ -99,6 +102,8 @@ class SamplerOptions:
             raise ValueError(f"stop must be one of {', '.join(STOP_RULES)}, not {self.stop!r}")
         if self.coordinates not in COORDINATES:
             raise ValueError(f"coordinates must be one of {', '.join(COORDINATES)}, not {self.coordinates!r}")
+        if self.warm_up not in WARM_UPS:
+            raise ValueError(f"warm_up must be one of {', '.join(WARM_UPS)}, not {self.warm_up!r}")
         if self.proposal not in PROPOSALS:
             raise ValueError(f"proposal must be one of {', '.join(PROPOSALS)}, not {self.proposal!r}")
         if not self.ess_target > 0 or not self.rhat_target > 1:
@@ -314,27 +319,56 @@ def _chunk_task(job):
     return b.get_chain(), b.get_log_prob(), b.accepted.copy(), sampler.random_state
 
 
-def _schedule(options):
-    """The lockstep chunks (stored steps): (ends of every chunk, warm-up length, {chunk start: window}).
+# warm_up="plateau": the warm-up ends when the independence proposal stops improving, the chunk's acceptance
+# risen by less than this share over the chunk before's (on the examples, seed 0, 125-step chunks: the Drogue's
+# rose 0.20 → 0.26 → 0.34 → 0.38 → 0.41 → 0.42, the Main's by 8–30 % a chunk until its sixth), after at least
+# MIN_ADAPTATIONS chunks and at most MAX_ADAPTATIONS (a posterior the proposal never fits keeps DE's share).
+ACCEPTANCE_RTOL = 0.10
+MIN_ADAPTATIONS = 2
+MAX_ADAPTATIONS = 12
+# Its chunks are at least this many stored steps: each proposal is fitted to one chunk's draws, 25·W ≈ 50·D of
+# them (W = 2·D + 2 walkers). At 12 stored steps (check_every 250) the composite two-Drogue fit froze a proposal
+# that left τ at 93 steps and ran to max_steps; at 25 it stopped at 2,750 steps, as under the fixed warm-up.
+PLATEAU_CHUNK = 25
 
-    ``options.proposal == "de"``: chunks of ``check_every`` steps, no warm-up beyond the ESS rule's burn-in.
-    ``"adaptive"``: a warm-up of one differential-evolution chunk of ``check_every`` steps and two
-    adaptation chunks of half that, each with the independence proposal fitted to the ensemble's draws of
-    the window before it ([C/2, C), then the first adaptation chunk); then chunks of half ``check_every``
-    with the proposal frozen at its fit to the second adaptation chunk. The warm-up's draws are dropped
-    and the ESS rule runs on what follows, so every kept draw comes from one fixed kernel.
+
+@dataclass(frozen=True)
+class _Schedule:
+    """The lockstep chunks in stored steps. ``de``: the differential-evolution chunk that starts the adaptive
+    proposal's warm-up (0: no warm-up, DE alone in chunks of ``step``); ``step``: each adaptation and check chunk;
+    the warm-up has ``adaptations`` = (fewest, most) adaptation chunks."""
+
+    de: int
+    step: int
+    adaptations: tuple = (MIN_ADAPTATIONS, MAX_ADAPTATIONS)
+
+
+def _schedule(options):
+    """The chunks of ``options``' ESS rule, in stored steps (C = ``check_every``).
+
+    ``proposal="de"``: chunks of C, no warm-up beyond the ESS rule's burn-in. Under the adaptive (or pooled)
+    proposal a warm-up of one differential-evolution chunk, then adaptation chunks, each with the independence
+    proposal fitted to the draws of the chunk before (the DE chunk's second half for the first); then the proposal
+    is frozen at its fit to the last adaptation chunk, the warm-up's draws are dropped and the ESS rule is checked
+    after every further chunk on what follows, so every kept draw comes from one fixed kernel.
+
+    ``warm_up="plateau"`` (the default): chunks of C/4 (at least :data:`PLATEAU_CHUNK` stored steps), the DE
+    chunk twice that, and adaptation until the acceptance stops rising (:data:`ACCEPTANCE_RTOL`). The fixed
+    warm-up before it spent 1,000 of the two-Drogue example's 1,250 steps; this one stops after 875.
+    ``"fixed"``: a DE chunk of C, exactly two adaptation chunks of C/2, checks every C/2 (the diagnosis's short
+    fits, whose detection rates were measured with it).
     """
     full = max(1, options.check_every // options.store_every)
-    half = max(1, full // 2)
-    warm = full + 2 * half
-    if options.proposal == "de" or options.max_steps < (warm + half) * options.store_every:
-        return (lambda k: (k + 1) * full), 0, {}   # (a run too short for the warm-up: DE alone)
-    windows = {full: (full // 2, full), full + half: (full, full + half), warm: (full + half, warm)}
-
-    def ends(k):
-        return full + k * half
-
-    return ends, warm, windows
+    if options.proposal == "de":
+        return _Schedule(de=0, step=full)
+    if options.warm_up == "fixed":
+        step, adaptations = max(1, full // 2), (2, 2)
+    else:
+        step, adaptations = max(PLATEAU_CHUNK, full // 4), (MIN_ADAPTATIONS, MAX_ADAPTATIONS)
+    if options.max_steps < (2 + adaptations[0] + 1) * step * options.store_every:
+        # a run too short for the warm-up: DE alone, its chain what the adaptive run's first chunk would be
+        return _Schedule(de=0, step=2 * step)
+    return _Schedule(de=2 * step, step=step, adaptations=adaptations)
 
 
 def _window_draws(store, window):
@@ -343,9 +377,9 @@ def _window_draws(store, window):
     return store.sampler.backend.get_chain(discard=lo)[:hi - lo].reshape(-1, store.sampler.ndim)
 
 
-def _proposals_at(stores, start, windows, frozen, pooled=False):
-    """Each ensemble's independence proposal for the chunk from stored step ``start``: fitted to its
-    window, or the frozen ones. ``pooled``: one proposal fitted to every ensemble's window.
+def _proposals_at(stores, window, pooled=False):
+    """Each ensemble's independence proposal fitted to its draws of ``window`` (stored steps lo, hi).
+    ``pooled``: one proposal fitted to every ensemble's window.
 
     Pooled, an ensemble that has not yet crossed a slow direction of the posterior gets a proposal that
     reaches where the others are; each chain's kernel is still fixed after the warm-up (its draws are
@@ -353,13 +387,34 @@ def _proposals_at(stores, start, windows, frozen, pooled=False):
     apart."""
     from cpas_bayes.inference.moves import fit_proposal
 
-    if start not in windows:
-        return frozen
     log_columns = getattr(stores[0].model, "log_scale", None)   # a bare log density: θ coordinates
     if pooled:
-        proposal = fit_proposal(np.concatenate([_window_draws(st, windows[start]) for st in stores]), log_columns)
+        proposal = fit_proposal(np.concatenate([_window_draws(st, window) for st in stores]), log_columns)
         return [proposal] * len(stores)
-    return [fit_proposal(_window_draws(st, windows[start]), log_columns) for st in stores]
+    return [fit_proposal(_window_draws(st, window), log_columns) for st in stores]
+
+
+def _acceptance(stores, lo, hi, store_every):
+    """The moves' acceptance over stored steps [lo, hi) of every ensemble, read from the chain itself (so a
+    resumed run reads what an uninterrupted one did, whatever chunks its checkpoint holds): the share a of
+    walkers that moved between stored steps, 1 − (1 − a_step)^store_every, solved for a_step."""
+    moved = np.mean([np.any(np.diff(st.sampler.backend.get_chain()[lo - 1:hi], axis=0) != 0, axis=-1).mean()
+                     for st in stores])
+    return 1.0 - (1.0 - min(moved, 1.0 - 1e-12)) ** (1.0 / store_every)
+
+
+def _warm_up_done(stores, start, end, schedule, acceptance_before, max_stored, store_every):
+    """(done, this chunk's acceptance) after the adaptation chunk [start, end): done when the acceptance, over
+    all ensembles, rose less than :data:`ACCEPTANCE_RTOL` over the chunk before's, or the warm-up is at its
+    longest."""
+    acceptance = _acceptance(stores, start, end, store_every)
+    adaptations = (end - schedule.de) // schedule.step
+    fewest, most = schedule.adaptations
+    if adaptations < fewest:
+        return False, acceptance
+    done = (acceptance < (1.0 + ACCEPTANCE_RTOL) * acceptance_before or adaptations >= most
+            or end + 2 * schedule.step > max_stored)
+    return done, acceptance
 
 
 def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
@@ -374,31 +429,41 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
 
     if exchanges_of(model):   # DE and exchanges only (ensemble_moves): no proposal to adapt, no warm-up to drop
         options = replace(options, proposal="de")
-    ends, warm, windows = _schedule(options)
+    schedule = _schedule(options)
+    max_stored = options.max_steps // options.store_every
     with ExitStack() as held:
         for ckpt in ckpts:
             held.enter_context(exclusive_writer(ckpt or None))
         columns = _stop_columns(model, options.stop_on)
         stores = [EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
         proposals = [None] * len(stores)
-        k, start, tau_prev = 0, 0, None
+        # warm: where the kept chain starts (None while the warm-up runs); 0 without one
+        start, warm, tau_prev, acceptance = 0, (None if schedule.de else 0), None, None
         while True:
             raise_if_requested()  # between chunks: every checkpoint is complete
-            end = ends(k)
-            proposals = _proposals_at(stores, start, windows, proposals, pooled=options.proposal == "pooled")
+            end = schedule.de if start == 0 and schedule.de else start + schedule.step
+            if warm is None and start > 0:   # an adaptation chunk: refit to the chunk before
+                window = (schedule.de // 2, schedule.de) if start == schedule.de else (start - schedule.step, start)
+                proposals = _proposals_at(stores, window, pooled=options.proposal == "pooled")
             behind = [(st, p) for st, p in zip(stores, proposals) if st.stored < end]
             jobs = [(model, st.next_state(), end - st.stored, options.store_every, p) for st, p in behind]
             for (st, _), piece in zip(behind, executor.map(_chunk_task, jobs, desc="chunk", progress=False)):
                 st.append(*piece)
-            k, start, steps = k + 1, end, end * options.store_every
-            if end < warm:
+            steps = end * options.store_every
+            if warm is None:
+                if start > 0:
+                    done, acceptance = _warm_up_done(stores, start, end, schedule, acceptance, max_stored,
+                                                     options.store_every)
+                    if done:   # freeze the proposal at its fit to this last adaptation chunk
+                        warm = end
+                        proposals = _proposals_at(stores, (start, end), pooled=options.proposal == "pooled")
+                        # this chunk's τ: what the first check's τ must settle against
+                        tau_prev = [integrated_time(st.sampler.backend.get_chain()[start:end], options.store_every)
+                                    for st in stores]
+                start = end
                 continue
+            start = end
             chains = [st.sampler.backend.get_chain()[warm:end] for st in stores]
-            if end == warm:  # the last adaptation chunk's τ: what the first check's τ must settle against
-                lo, hi = windows[warm]
-                tau_prev = [integrated_time(st.sampler.backend.get_chain()[lo:hi], options.store_every)
-                            for st in stores]
-                continue
             check = ess_check([_in_theta(model, c) for c in chains], options.store_every, options.ess_target,
                               options.rhat_target, tau_prev, options.tau_rtol, columns)
             tau_prev = check.taus
@@ -414,7 +479,7 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
         runs.append(run)
     worst = check.statistics.worst() if check.statistics else (np.nan, np.nan, np.nan)
     return runs, {"stop": "ess", "ess_bulk_min": worst[0], "ess_tail_min": worst[1], "rhat_max": worst[2],
-                  "proposal": options.proposal}
+                  "proposal": options.proposal, "warm_up_steps": int(warm) * options.store_every}
 
 
 def _inside_coordinates(u, density, rng):
