@@ -126,6 +126,23 @@ def test_a_term_that_explains_a_significant_discrepancy_is_named_without_beating
         assert any("as well as the generic term does" in r for r in check.reasons)
 
 
+@pytest.mark.parametrize("shares,clear", [((1.0, 0.05), True), ((1.0, 0.5), False), ((0.8, 0.05), False),
+                                          ((None, None), False)])
+def test_a_term_that_takes_over_the_whole_discrepancy_leads_one_that_hardly_touches_it(shares, clear):
+    """Two terms with gains a few se apart (no clear lead in elpd): the one that takes over ≥ 90 % of the
+    discrepancy leads when the other takes over ≤ 30 %; otherwise the leader stays on trial."""
+    ref, cands = _field({"sensor_lag": 45.0, "friction_drift": 42.0}, jitter=0.5)
+    checks = [rule.check_term(t, cands[t], ref, OPTIONS, share=s, misfit=True)
+              for t, s in zip(("sensor_lag", "friction_drift"), shares)]
+    assert all(c.gains and c.eligible for c in checks)
+    diff, se = rule.paired_difference(cands["sensor_lag"], cands["friction_drift"])
+    # no clear lead by the elpd alone (choose_term's margin rule)
+    assert not (diff > OPTIONS.min_margin_se * se or (diff > OPTIONS.min_gain and checks[0].elpd_diff
+                                                      >= OPTIONS.min_margin_ratio * checks[1].elpd_diff))
+    chosen, is_clear, reasons = rule.choose_term(checks, {c.name: c for c in cands.values()}, OPTIONS)
+    assert chosen == "sensor_lag" and is_clear == clear, reasons
+
+
 def test_a_small_gain_names_nothing():
     ref, cands = _field({"sensor_lag": 6.0})
     assert _judge(ref, cands)[1][0] is None
