@@ -31,8 +31,12 @@ N_DRAWS = 400   # replicated data sets: Monte Carlo sd of a p-value near 0.03 is
 @pytest.fixture(scope="module")
 def drogue_fit():
     test = read_bundle(next(p for p in example_bundles() if p.name == "drogue-clean"))
+    # differential evolution, as this fixture ran before the warm-up could fit in 1,000 steps: thinned by ½ τ,
+    # its draws have no repeats. The adaptive proposal's thinner chains repeat draws (a walker that refused
+    # five moves), and tied log ratios leave PSIS free to order them: ArviZ's order and ours then give the same
+    # PSIS-LOO but LOO-PIT values 1e-5 apart (test_fit_loo_and_loo_pit_equal_arviz_own)
     return fit_test(test, SamplerOptions(seed=1, n_ensembles=2, max_steps=1000, check_every=500, map_starts=2,
-                                         progress=False))
+                                         progress=False, proposal="de"))
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ Procedure
    alike in log coordinates). Under the ESS rule with ``proposal="adaptive"``
    (the default) each ensemble then fits a multivariate-t independence proposal
    to its own draws and mixes it in (70 %), which leaves τ at 5–20 steps
-   (:func:`_schedule`): one DE chunk of warm-up, adaptation chunks until the
+   (:mod:`cpas_bayes.inference.warm_up`): one DE chunk of warm-up, adaptation chunks until the
    acceptance stops rising, then the proposal frozen, the warm-up dropped and the
    ESS rule run on the rest. The
    τ rule keeps DE alone (its 50 τ criterion is for one kernel from the start).
@@ -67,11 +67,11 @@ from cpas_bayes.inference.ensemble_store import EnsembleStore, exchanges_of
 from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
 from cpas_bayes.inference.stopping import (ESS_TARGET, RHAT_TARGET, STOP_RULES, burn_and_thin, ess_check,
                                            integrated_time, pool_kept)
+from cpas_bayes.inference.warm_up import WARM_UPS, fit_proposals, warm_up_done, warm_up_schedule
 from cpas_bayes.stats.model import TestModel
 
 
 PROPOSALS = ("de", "adaptive", "pooled")
-WARM_UPS = ("plateau", "fixed")
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class SamplerOptions:
     seed: int = 0
     n_ensembles: int = 4
     walkers: int | None = None        # default: 2·D + 2, even
-    check_every: int = 500            # steps between convergence checks and checkpoints (adaptive: see _schedule)
+    check_every: int = 500            # steps between convergence checks and checkpoints (adaptive: inference.warm_up)
     max_steps: int = 20000
     store_every: int = 5              # keep every k-th step in the chain file
     stop: str = "ess"                 # "ess": ESS and R-hat targets (module docstring); "tau": the τ rule below
@@ -90,9 +90,9 @@ class SamplerOptions:
     ess_target: float = ESS_TARGET    # ESS rule: bulk and tail ESS of every parameter at least this ...
     rhat_target: float = RHAT_TARGET  # ... and its R-hat at most this
     stop_on: tuple = ()               # ESS rule: only these parameters' ESS and R-hat (default: every one)
-    proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (_schedule); "de" alone
+    proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (inference.warm_up); "de" alone
     coordinates: str = "grown"        # where the walkers move (inference.coordinates): "model" is θ itself
-    warm_up: str = "plateau"          # the adaptive proposal's warm-up (_schedule): "plateau" or "fixed"
+    warm_up: str = "plateau"          # the adaptive proposal's warm-up (inference.warm_up): "plateau" or "fixed"
     map_starts: int = 4
     workers: int = 2
     progress: bool = True
@@ -319,107 +319,9 @@ def _chunk_task(job):
     return b.get_chain(), b.get_log_prob(), b.accepted.copy(), sampler.random_state
 
 
-# warm_up="plateau": the warm-up ends when the independence proposal stops improving, the chunk's acceptance
-# risen by less than this share over the chunk before's (on the examples, seed 0, 125-step chunks: the Drogue's
-# rose 0.20 → 0.26 → 0.34 → 0.38 → 0.41 → 0.42, the Main's by 8–30 % a chunk until its sixth), after at least
-# MIN_ADAPTATIONS chunks and at most MAX_ADAPTATIONS (a posterior the proposal never fits keeps DE's share).
-ACCEPTANCE_RTOL = 0.10
-MIN_ADAPTATIONS = 2
-MAX_ADAPTATIONS = 12
-# Its chunks are at least this many stored steps: each proposal is fitted to one chunk's draws, 25·W ≈ 50·D of
-# them (W = 2·D + 2 walkers). At 12 stored steps (check_every 250) the composite two-Drogue fit froze a proposal
-# that left τ at 93 steps and ran to max_steps; at 25 it stopped at 2,750 steps, as under the fixed warm-up.
-PLATEAU_CHUNK = 25
-
-
-@dataclass(frozen=True)
-class _Schedule:
-    """The lockstep chunks in stored steps. ``de``: the differential-evolution chunk that starts the adaptive
-    proposal's warm-up (0: no warm-up, DE alone in chunks of ``step``); ``step``: each adaptation and check chunk;
-    the warm-up has ``adaptations`` = (fewest, most) adaptation chunks."""
-
-    de: int
-    step: int
-    adaptations: tuple = (MIN_ADAPTATIONS, MAX_ADAPTATIONS)
-
-
-def _schedule(options):
-    """The chunks of ``options``' ESS rule, in stored steps (C = ``check_every``).
-
-    ``proposal="de"``: chunks of C, no warm-up beyond the ESS rule's burn-in. Under the adaptive (or pooled)
-    proposal a warm-up of one differential-evolution chunk, then adaptation chunks, each with the independence
-    proposal fitted to the draws of the chunk before (the DE chunk's second half for the first); then the proposal
-    is frozen at its fit to the last adaptation chunk, the warm-up's draws are dropped and the ESS rule is checked
-    after every further chunk on what follows, so every kept draw comes from one fixed kernel.
-
-    ``warm_up="plateau"`` (the default): chunks of C/4 (at least :data:`PLATEAU_CHUNK` stored steps), the DE
-    chunk twice that, and adaptation until the acceptance stops rising (:data:`ACCEPTANCE_RTOL`). The fixed
-    warm-up before it spent 1,000 of the two-Drogue example's 1,250 steps; this one stops after 875.
-    ``"fixed"``: a DE chunk of C, exactly two adaptation chunks of C/2, checks every C/2 (the diagnosis's short
-    fits, whose detection rates were measured with it).
-    """
-    full = max(1, options.check_every // options.store_every)
-    if options.proposal == "de":
-        return _Schedule(de=0, step=full)
-    if options.warm_up == "fixed":
-        step, adaptations = max(1, full // 2), (2, 2)
-    else:
-        step, adaptations = max(PLATEAU_CHUNK, full // 4), (MIN_ADAPTATIONS, MAX_ADAPTATIONS)
-    if options.max_steps < (2 + adaptations[0] + 1) * step * options.store_every:
-        # a run too short for the warm-up: DE alone, its chain what the adaptive run's first chunk would be
-        return _Schedule(de=0, step=2 * step)
-    return _Schedule(de=2 * step, step=step, adaptations=adaptations)
-
-
-def _window_draws(store, window):
-    lo, hi = window
-    # the window only: the chain before it is not copied
-    return store.sampler.backend.get_chain(discard=lo)[:hi - lo].reshape(-1, store.sampler.ndim)
-
-
-def _proposals_at(stores, window, pooled=False):
-    """Each ensemble's independence proposal fitted to its draws of ``window`` (stored steps lo, hi).
-    ``pooled``: one proposal fitted to every ensemble's window.
-
-    Pooled, an ensemble that has not yet crossed a slow direction of the posterior gets a proposal that
-    reaches where the others are; each chain's kernel is still fixed after the warm-up (its draws are
-    dropped), so every kept draw comes from one valid kernel, and R-hat still compares ensembles started
-    apart."""
-    from cpas_bayes.inference.moves import fit_proposal
-
-    log_columns = getattr(stores[0].model, "log_scale", None)   # a bare log density: θ coordinates
-    if pooled:
-        proposal = fit_proposal(np.concatenate([_window_draws(st, window) for st in stores]), log_columns)
-        return [proposal] * len(stores)
-    return [fit_proposal(_window_draws(st, window), log_columns) for st in stores]
-
-
-def _acceptance(stores, lo, hi, store_every):
-    """The moves' acceptance over stored steps [lo, hi) of every ensemble, read from the chain itself (so a
-    resumed run reads what an uninterrupted one did, whatever chunks its checkpoint holds): the share a of
-    walkers that moved between stored steps, 1 − (1 − a_step)^store_every, solved for a_step."""
-    moved = np.mean([np.any(np.diff(st.sampler.backend.get_chain()[lo - 1:hi], axis=0) != 0, axis=-1).mean()
-                     for st in stores])
-    return 1.0 - (1.0 - min(moved, 1.0 - 1e-12)) ** (1.0 / store_every)
-
-
-def _warm_up_done(stores, start, end, schedule, acceptance_before, max_stored, store_every):
-    """(done, this chunk's acceptance) after the adaptation chunk [start, end): done when the acceptance, over
-    all ensembles, rose less than :data:`ACCEPTANCE_RTOL` over the chunk before's, or the warm-up is at its
-    longest."""
-    acceptance = _acceptance(stores, start, end, store_every)
-    adaptations = (end - schedule.de) // schedule.step
-    fewest, most = schedule.adaptations
-    if adaptations < fewest:
-        return False, acceptance
-    done = (acceptance < (1.0 + ACCEPTANCE_RTOL) * acceptance_before or adaptations >= most
-            or end + 2 * schedule.step > max_stored)
-    return done, acceptance
-
-
 def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
     """The ESS rule: all ensembles one chunk further, then :func:`ess_check` on the common length (after the
-    adaptive proposal's warm-up, :func:`_schedule`), until met or ``max_steps``. Chunks a checkpoint already
+    adaptive proposal's warm-up, :mod:`cpas_bayes.inference.warm_up`), until met or ``max_steps``. Chunks a checkpoint already
     holds are not rerun but checked again (the replay), and the proposals are refitted from the same stored
     draws, so a resumed run stops where an uninterrupted one does. The main process holds every checkpoint's
     lock."""
@@ -429,7 +331,7 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
 
     if exchanges_of(model):   # DE and exchanges only (ensemble_moves): no proposal to adapt, no warm-up to drop
         options = replace(options, proposal="de")
-    schedule = _schedule(options)
+    schedule = warm_up_schedule(options)
     max_stored = options.max_steps // options.store_every
     with ExitStack() as held:
         for ckpt in ckpts:
@@ -444,7 +346,7 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
             end = schedule.de if start == 0 and schedule.de else start + schedule.step
             if warm is None and start > 0:   # an adaptation chunk: refit to the chunk before
                 window = (schedule.de // 2, schedule.de) if start == schedule.de else (start - schedule.step, start)
-                proposals = _proposals_at(stores, window, pooled=options.proposal == "pooled")
+                proposals = fit_proposals(stores, window, pooled=options.proposal == "pooled")
             behind = [(st, p) for st, p in zip(stores, proposals) if st.stored < end]
             jobs = [(model, st.next_state(), end - st.stored, options.store_every, p) for st, p in behind]
             for (st, _), piece in zip(behind, executor.map(_chunk_task, jobs, desc="chunk", progress=False)):
@@ -452,11 +354,11 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
             steps = end * options.store_every
             if warm is None:
                 if start > 0:
-                    done, acceptance = _warm_up_done(stores, start, end, schedule, acceptance, max_stored,
+                    done, acceptance = warm_up_done(stores, start, end, schedule, acceptance, max_stored,
                                                      options.store_every)
                     if done:   # freeze the proposal at its fit to this last adaptation chunk
                         warm = end
-                        proposals = _proposals_at(stores, (start, end), pooled=options.proposal == "pooled")
+                        proposals = fit_proposals(stores, (start, end), pooled=options.proposal == "pooled")
                         # this chunk's τ: what the first check's τ must settle against
                         tau_prev = [integrated_time(st.sampler.backend.get_chain()[start:end], options.store_every)
                                     for st in stores]
