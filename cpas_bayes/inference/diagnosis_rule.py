@@ -362,12 +362,15 @@ def choose_term(checks, candidates, options: DiagnoseOptions):
     clear = diff > options.min_margin_se * se or (
         diff > options.min_gain and best.elpd_diff >= options.min_margin_ratio * second.elpd_diff)
     takes_it_all = _takes_it_all(best, second)
-    reasons.append(f"{best.term} leads {second.term} by {diff:.1f} ± {se:.1f}"
-                   + ("" if clear else
-                      f", and takes over {100 * best.share:.0f} % of the discrepancy where {second.term} takes over "
-                      f"{100 * second.share:.0f} %" if takes_it_all else
-                      " — not clearly: kept on trial, named only if "
-                      f"{second.term} still gains with {best.term} included"))
+    lead = f"{best.term} leads {second.term} by {diff:.1f} ± {se:.1f}"
+    if clear:
+        reasons.append(lead)
+    elif takes_it_all:
+        reasons.append(f"{lead}, and takes over {100 * best.share:.0f} % of the discrepancy where {second.term} "
+                       f"takes over {100 * second.share:.0f} %")
+    else:
+        reasons.append(f"{lead} — not clearly: kept on trial, named only if {second.term} still gains with "
+                       f"{best.term} included")
     return best.term, clear or takes_it_all, reasons
 
 

@@ -38,7 +38,7 @@ def fingerprint(model, init, options):
     key = [options.seed, options.store_every]
     if options.proposal != "de" and options.stop == "ess":  # the adaptive chain depends on its chunks too
         key += [options.proposal, options.check_every, "log θ for lognormal priors"]  # the proposal's coordinates
-        if options.warm_up != "fixed":
+        if options.warm_up != "fixed":   # (the fixed warm-up's checkpoints, from before the choice, stay valid)
             key.append(f"warm-up: {options.warm_up}")
     if exchanges_of(model):   # the chain depends on the moves
         key.append("label exchanges, the last stage's keeping the other stages' fill times")
