@@ -58,7 +58,11 @@ def test_the_program_ends_without_teardown_but_with_its_whole_output_and_status(
 
 
 def test_the_program_runs_the_exit_handlers_then_ends_at_once_with_the_commands_status(monkeypatch):
+    import threading
+
     calls = []
+    # no thread of its own: a thread an earlier test left in this worker must not decide the exit taken
+    monkeypatch.setattr(threading, "enumerate", lambda: [threading.main_thread()])
     monkeypatch.setattr(entry, "main", lambda: calls.append("command") or 2)
     monkeypatch.setattr("atexit._run_exitfuncs", lambda: calls.append("exit handlers"))
     monkeypatch.setattr("os._exit", lambda status: calls.append(status))
