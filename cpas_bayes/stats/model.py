@@ -434,10 +434,14 @@ class TestModel:
         extra = self._apparent(ctx, t_lag[:, None, :])
         if extra is not None:
             cds_lag = cds_lag + extra
-        q_now = obs.qbar_at(t)[None, None, :]
-        force_lag = obs.qbar_at(t_lag)[:, None, :] * cds_lag[:, idx, :] - weights * obs.g_at(t_lag)[:, None, :]
-        force_now = q_now * seen[:, idx, :] - weights * obs.g_at(t)[None, None, :]
-        return baseline + (force_lag - force_now) / (s[:, None, :] * q_now)
+        # The change is physics: q̄ and G smoothed in both forces, or the difference of two noisy samples
+        # (±5 m² on a Main's 500 m², twice the true effect) enters the prediction; the reduction divided
+        # by the measured q̄(t), and so does this.
+        q_smooth = obs.smooth_qbar_at(t)[None, None, :]
+        force_lag = (obs.smooth_qbar_at(t_lag)[:, None, :] * cds_lag[:, idx, :]
+                     - weights * obs.smooth_g_at(t_lag)[:, None, :])
+        force_now = q_smooth * seen[:, idx, :] - weights * obs.smooth_g_at(t)[None, None, :]
+        return baseline + (force_lag - force_now) / (s[:, None, :] * obs.qbar_at(t)[None, None, :])
 
     # -- likelihood -----------------------------------------------------------
 
