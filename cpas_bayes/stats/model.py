@@ -424,23 +424,19 @@ class TestModel:
         baseline = seen[:, idx, :] / s[:, None, :] + obs.lc_weight_term[None] * (1.0 - 1.0 / s[:, None, :])
         if lag is None:
             return baseline
-        # The load cell at t shows the riser at t − δ, while the reduction forms its drag
-        # area with the IMU's q̄(t) and G(t). Added to the baseline as the change of the
-        # modelled riser force over the lag, so δ = 0 is the baseline exactly.
+        # The load cell at t shows the riser at t − δ; the reduction divided by the measured q̄(t). Added to the
+        # baseline as the change of the riser force over the lag (δ = 0: the baseline exactly), with q̄ and G
+        # smoothed in it: the difference of two noisy samples is noise (±5 m² on a Main's 500 m²).
         t_lag = t[None, :] - lag[:, None]                     # (B, N)
         cds_lag, _ = self.drag_areas(ctx.stage, t_lag[:, None, :])
         for ext in self.extensions:
             cds_lag = ext.reshape_drag_area(ctx, cds_lag, t_lag[:, None, :])
         extra = self._apparent(ctx, t_lag[:, None, :])
-        if extra is not None:
-            cds_lag = cds_lag + extra
-        # The change is physics: q̄ and G smoothed in both forces, or the difference of two noisy samples
-        # (±5 m² on a Main's 500 m², twice the true effect) enters the prediction; the reduction divided
-        # by the measured q̄(t), and so does this.
-        q_smooth = obs.smooth_qbar_at(t)[None, None, :]
-        force_lag = (obs.smooth_qbar_at(t_lag)[:, None, :] * cds_lag[:, idx, :]
-                     - weights * obs.smooth_g_at(t_lag)[:, None, :])
-        force_now = q_smooth * seen[:, idx, :] - weights * obs.smooth_g_at(t)[None, None, :]
+        cds_lag = cds_lag if extra is None else cds_lag + extra
+        q_lag, g_lag = obs.smooth_qbar_at(t_lag)[:, None, :], obs.smooth_g_at(t_lag)[:, None, :]
+        q_now, g_now = obs.smooth_qbar_at(t)[None, None, :], obs.smooth_g_at(t)[None, None, :]
+        force_lag = q_lag * cds_lag[:, idx, :] - weights * g_lag
+        force_now = q_now * seen[:, idx, :] - weights * g_now
         return baseline + (force_lag - force_now) / (s[:, None, :] * obs.qbar_at(t)[None, None, :])
 
     # -- likelihood -----------------------------------------------------------
