@@ -146,7 +146,9 @@ def logger_observations(test: FlightTest, estimate: air.AirDataEstimate, channel
         samples_per_bin=count, native_time=t,
         native_airspeed=f["airspeed"].to_numpy(), native_qbar=f["qbar"].to_numpy(), native_g=g,
         native_density=f["density"].to_numpy(), native_gamma=np.radians(f["gamma"].to_numpy()),
-        stated_vehicle_weight=test.vehicle.weight, stated_vehicle_cds=test.vehicle.cds)
+        stated_vehicle_weight=test.vehicle.weight, stated_vehicle_cds=test.vehicle.cds,
+        # the reconstructed q̄ is smooth already, and no load cell of a logger bundle reads these
+        native_qbar_smooth=f["qbar"].to_numpy(), native_g_smooth=g)
     return obs, bins
 
 

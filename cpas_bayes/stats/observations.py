@@ -74,9 +74,9 @@ class Observations:
     native_gamma: np.ndarray      # flight-path angle, rad
     stated_vehicle_weight: float
     stated_vehicle_cds: float
-    # q̄ and G smoothed over FLIGHT_SMOOTHING s: their change over a load cell's lag (None: the above)
-    native_qbar_smooth: np.ndarray | None = None
-    native_g_smooth: np.ndarray | None = None
+    # q̄ and G smoothed over FLIGHT_SMOOTHING s: their change over a load cell's lag
+    native_qbar_smooth: np.ndarray
+    native_g_smooth: np.ndarray
 
     @property
     def n_bins(self):
@@ -94,13 +94,11 @@ class Observations:
     def smooth_qbar_at(self, t):
         """q̄ at ``t`` with its sample noise smoothed out: the change of q̄ over a short interval is physics,
         the difference of two noisy samples is mostly noise (see :data:`FLIGHT_SMOOTHING`)."""
-        q = self.native_qbar if self.native_qbar_smooth is None else self.native_qbar_smooth
-        return np.interp(t, self.native_time, q)
+        return np.interp(t, self.native_time, self.native_qbar_smooth)
 
     def smooth_g_at(self, t):
         """G at ``t`` smoothed alike."""
-        g = self.native_g if self.native_g_smooth is None else self.native_g_smooth
-        return np.interp(t, self.native_time, g)
+        return np.interp(t, self.native_time, self.native_g_smooth)
 
     def density_at(self, t):
         return np.interp(t, self.native_time, self.native_density)
