@@ -255,8 +255,8 @@ def test_a_continued_chunk_is_not_refused_for_walkers_drawn_together():
     together = np.hstack([x, 2.0 * x])          # the second column a multiple of the first
     state = np.random.RandomState(1).get_state()
     with pytest.raises(ValueError, match="condition number"):
-        fit._chunk_task((log_prob, (together, None, state), 5, 1, None))
-    chain, lp, _, _ = fit._chunk_task((log_prob, (together, log_prob(together), state), 5, 1, None))
+        fit._chunk_task((log_prob, (together, None, state), 5, 1, None, ()))
+    chain, lp, _, _ = fit._chunk_task((log_prob, (together, log_prob(together), state), 5, 1, None, ()))
     assert chain.shape == (5, 8, 2) and np.all(np.isfinite(lp))
 
 

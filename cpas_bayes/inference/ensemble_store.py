@@ -41,7 +41,7 @@ def fingerprint(model, init, options):
         if options.warm_up != "fixed":   # (the fixed warm-up's checkpoints, from before the choice, stay valid)
             key.append(f"warm-up: {options.warm_up}")
     if exchanges_of(model):   # the chain depends on the moves
-        key.append("label exchanges, the last stage's keeping the other stages' fill times")
+        key.append("label exchanges, the last stage's keeping the other stages' fill times, and mode jumps")
     h.update(json.dumps(key).encode())
     return h.hexdigest()[:16]
 

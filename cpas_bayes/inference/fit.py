@@ -64,6 +64,7 @@ import numpy as np
 from cpas_bayes.core.interrupts import raise_if_requested
 from cpas_bayes.inference.coordinates import COORDINATES, SamplerTarget, sampling_coordinates
 from cpas_bayes.inference.ensemble_store import EnsembleStore, exchanges_of
+from cpas_bayes.inference.mode_jumps import mode_jumps, other_pairings, refit_jumps
 from cpas_bayes.inference.start import find_map, initial_walkers, laplace_covariance
 from cpas_bayes.inference.stopping import (ESS_TARGET, RHAT_TARGET, STOP_RULES, burn_and_thin, ess_check,
                                            integrated_time, pool_kept)
@@ -150,14 +151,14 @@ class SamplingResult:
 # ensembles
 
 
-def _moves(proposal=None, exchanges=()):
+def _moves(proposal=None, exchanges=(), jumps=()):
     """Differential evolution (:mod:`cpas_bayes.inference.moves`), mixed with the adaptive independence
     move once a proposal is fitted, and with label exchanges when the model has any. The snooker variant,
     meant for multimodal targets, gave no shorter τ on these posteriors and costs a Python loop per walker:
     their one multimodality, which canopy is which, has an exact move of its own."""
     from cpas_bayes.inference.moves import ensemble_moves
 
-    return ensemble_moves(proposal, exchanges)
+    return ensemble_moves(proposal, exchanges, jumps)
 
 
 def _check(chain, steps, tau_prev, options):
@@ -244,6 +245,7 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
     try:
         rng = np.random.default_rng(options.seed)
         theta_map, lp_map = find_map(model, rng, options.map_starts, guesses)
+        theta_map, lp_map, optima = other_pairings(model, theta_map, lp_map, executor)
         cov = laplace_covariance(model, theta_map)
         n_walkers = options.walkers or 2 * model.ndim + 2
         n_walkers += n_walkers % 2
@@ -255,6 +257,7 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
                  for e in range(options.n_ensembles)]
         coords = sampling_coordinates(model, options.coordinates, theta_map)
         target = SamplerTarget(model, coords) if coords else model
+        jumps = mode_jumps(target, coords.to_sampler if coords else np.asarray, theta_map, lp_map, cov, optima)
         started = time.perf_counter()
         if coords:
             inits = [coords.to_sampler(i) for i in inits]
@@ -263,7 +266,7 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
                          for e, i in enumerate(inits)]
             inits = [_inside_coordinates(i, target, np.random.default_rng([options.seed, e, 3]))
                      for e, i in enumerate(inits)]
-        runs, stopping = run_ensembles(target, inits, seeds, options, ckpts, executor)
+        runs, stopping = run_ensembles(target, inits, seeds, options, ckpts, executor, jumps)
         seconds = time.perf_counter() - started
         for run in runs if coords else ():   # back to θ: the draws and their log density
             theta, log_jacobian = coords.inverse(run.draws)
@@ -273,15 +276,17 @@ def sample_posterior(model: TestModel, options: SamplerOptions = SamplerOptions(
         if own:
             executor.close()
     return SamplingResult(names=list(model.names), runs=runs, theta_map=theta_map, log_post_map=float(lp_map),
-                          options=options, extras={"stopping": stopping, "sampling_seconds": seconds})
+                          options=options, extras={"stopping": stopping, "sampling_seconds": seconds,
+                                                   "mode_jump_gaps": [j.log_post_gap for j in jumps]})
 
 
-def run_ensembles(model, inits, seeds, options: SamplerOptions, checkpoints=None, executor=None):
+def run_ensembles(model, inits, seeds, options: SamplerOptions, checkpoints=None, executor=None, jumps=()):
     """Run one ensemble per initial ball ``inits[e]`` (walkers, D) and seed under ``options.stop``'s rule.
 
     ``model`` is the vectorised log posterior (with ``names``, and optionally ``log_scale``: the parameters
     whose adaptive proposal works in log θ); ``checkpoints`` one file (or None) per
-    ensemble; ``executor`` default this process. Returns ([:class:`EnsembleRun`], what the ESS rule saw
+    ensemble; ``executor`` default this process; ``jumps`` the label exchanges' mode jumps
+    (:mod:`cpas_bayes.inference.mode_jumps`, the ESS rule's chunks only). Returns ([:class:`EnsembleRun`], what the ESS rule saw
     at its last check, empty under the τ rule).
     """
     from cpas_bayes.core.executor import Executor
@@ -292,7 +297,7 @@ def run_ensembles(model, inits, seeds, options: SamplerOptions, checkpoints=None
     bars = _ProgressBars(labels, options) if options.progress and sys.stderr.isatty() else None
     try:
         if options.stop == "ess":
-            return _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars)
+            return _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars, jumps)
         jobs = [(model, i, s, options, c, lab) for i, s, c, lab in zip(inits, seeds, ckpts, labels)]
         return executor.map(_ensemble_task, jobs, desc="ensembles", progress=False,
                             on_report=bars.update if bars else None), {}
@@ -308,8 +313,9 @@ def _chunk_task(job):
     state from the :class:`emcee.State`, and the moves hold no state of their own (the independence
     proposal, if any, is fixed for the chunk).
     """
-    model, (coords, log_prob, random_state), n_stored, store_every, proposal = job
-    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True, moves=_moves(proposal, exchanges_of(model)))
+    model, (coords, log_prob, random_state), n_stored, store_every, proposal, jumps = job
+    sampler = emcee.EnsembleSampler(*coords.shape, model, vectorize=True,
+                                    moves=_moves(proposal, exchanges_of(model), jumps))
     # emcee's check that the walkers are linearly independent is for a fresh start (log_prob None); a chain
     # continued from its last state is not one: the check raised mid-run on Main SBC replica 13, ending the fit
     # where the convergence checks over the ensembles should judge it
@@ -319,7 +325,7 @@ def _chunk_task(job):
     return b.get_chain(), b.get_log_prob(), b.accepted.copy(), sampler.random_state
 
 
-def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
+def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars, jumps=()):
     """The ESS rule: all ensembles one chunk further, then :func:`ess_check` on the common length (after the
     adaptive proposal's warm-up, :mod:`cpas_bayes.inference.warm_up`), until met or ``max_steps``. Chunks a checkpoint already
     holds are not rerun but checked again (the replay), and the proposals are refitted from the same stored
@@ -339,8 +345,9 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
         columns = _stop_columns(model, options.stop_on)
         stores = [EnsembleStore(model, i, s, options, c) for i, s, c in zip(inits, seeds, ckpts)]
         proposals = [None] * len(stores)
-        # warm: where the kept chain starts (None while the warm-up runs); 0 without one
-        start, warm, tau_prev, acceptance = 0, (None if schedule.de else 0), None, None
+        # warm: where the kept chain starts (None while the warm-up runs); 0 without one. With mode jumps the
+        # warm-up is one chunk with the Laplace jumps, which are then refitted to its second half
+        start, warm, tau_prev, acceptance = 0, (None if schedule.de or jumps else 0), None, None
         while True:
             raise_if_requested()  # between chunks: every checkpoint is complete
             end = schedule.de if start == 0 and schedule.de else start + schedule.step
@@ -348,10 +355,14 @@ def _run_lockstep(model, inits, seeds, ckpts, options, executor, labels, bars):
                 window = (schedule.de // 2, schedule.de) if start == schedule.de else (start - schedule.step, start)
                 proposals = fit_proposals(stores, window, pooled=options.proposal == "pooled")
             behind = [(st, p) for st, p in zip(stores, proposals) if st.stored < end]
-            jobs = [(model, st.next_state(), end - st.stored, options.store_every, p) for st, p in behind]
+            jobs = [(model, st.next_state(), end - st.stored, options.store_every, p, jumps) for st, p in behind]
             for (st, _), piece in zip(behind, executor.map(_chunk_task, jobs, desc="chunk", progress=False)):
                 st.append(*piece)
             steps = end * options.store_every
+            if warm is None and not schedule.de:   # (jumps) frozen at their fit to the warm-up chunk
+                jumps = refit_jumps(jumps, [st.sampler.backend.get_chain()[end // 2:end] for st in stores])
+                warm = start = end
+                continue
             if warm is None:
                 if start > 0:
                     done, acceptance = warm_up_done(stores, start, end, schedule, acceptance, max_stored,

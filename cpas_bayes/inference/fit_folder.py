@@ -374,6 +374,8 @@ def convergence(tree, sampling, rhat_max=1.01, ess_min=400):
         "ensembles_converged": [bool(r.converged) for r in sampling.runs],
         # the adaptive proposal's warm-up, dropped (inference.warm_up); 0 without one, None under the τ rule
         "warm_up_steps": sampling.extras.get("stopping", {}).get("warm_up_steps"),
+        # like canopies: how far below the MAP each other pairing's optimum lies (inference.mode_jumps)
+        "mode_jump_gaps": [float(g) for g in sampling.extras.get("mode_jump_gaps", [])],
         "per_parameter": {n: {"rhat": rhat_v[n], "ess_bulk": bulk_v[n], "ess_tail": tail_v[n]} for n in names},
     }
     out["converged"] = bool(all(out["ensembles_converged"]) and out["rhat_max"] < rhat_max

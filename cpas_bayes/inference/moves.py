@@ -119,6 +119,7 @@ class AlignedDEMove(VectorisedDEMove):
 
 PROPOSAL_DOF = 30.0      # ν of the multivariate t: tails a little heavier than the near-normal posteriors
 EXCHANGE_SHARE = 0.1     # of the moves, when like canopies can trade places (ExchangeMove)
+JUMP_SHARE = 0.1         # of the moves, when the pairings' modes are known (ModeJumpMove; the exchange then 0.05)
 PROPOSAL_SHARE = 0.7     # of the moves; differential evolution keeps the rest (any posterior shape)
 
 
@@ -245,14 +246,50 @@ class ExchangeMove(emcee.moves.Move):
         return state, accepted
 
 
-def ensemble_moves(proposal=None, exchanges=()):
+class ModeJumpMove(emcee.moves.Move):
+    """Jumps between the pairings of like canopies (:class:`cpas_bayes.inference.mode_jumps.ModeJump`).
+
+    Each walker s takes one jump drawn uniformly: the affine map that carries the Laplace approximation of
+    its pairing's mode onto the other's. The map is an involution where it crosses between the pairings,
+    so a q that stays in s's own pairing is refused and the rest accepted with min(1, p(q)·|∂q/∂s| / p(s)).
+    """
+
+    def __init__(self, jumps):
+        if not jumps:
+            raise ValueError("a mode-jump move needs at least one jump")
+        self.jumps = tuple(jumps)
+
+    def propose(self, model, state):
+        s = state.coords
+        n = s.shape[0]
+        pick = model.random.randint(len(self.jumps), size=n)
+        q = s.copy()
+        factor = np.zeros(n)
+        crossed = np.zeros(n, bool)
+        for k in range(len(self.jumps)):
+            rows = pick == k
+            if rows.any():
+                q[rows], crossed[rows], factor[rows] = self.jumps[k].apply(s[rows])
+        new_log_prob = np.full(n, -np.inf)
+        if crossed.any():
+            new_log_prob[crossed] = np.asarray(model.log_prob_fn(q[crossed]), dtype=float)
+        with np.errstate(invalid="ignore"):
+            accepted = crossed & (new_log_prob - state.log_prob + factor > np.log(model.random.rand(n)))
+        state = self.update(state, emcee.State(q, log_prob=new_log_prob), accepted)
+        return state, accepted
+
+
+def ensemble_moves(proposal=None, exchanges=(), jumps=()):
     """emcee's moves for one chunk: differential evolution, mixed with label exchanges (a share of
-    :data:`EXCHANGE_SHARE`) when the model has any, else with the independence move when a proposal
-    (μ, L, log columns) is given."""
+    :data:`EXCHANGE_SHARE`, half of it where ``jumps`` between the pairings' modes take
+    :data:`JUMP_SHARE`) when the model has any, else with the independence move when a proposal (μ, L, log columns) is given."""
     if exchanges:
         # Not with the independence move: one t fitted to draws of several pairings sits between them, and
         # was almost never accepted (a two-Drogue logger fit: 0.016 overall acceptance against 0.07).
-        return [(AlignedDEMove(exchanges), 1.0 - EXCHANGE_SHARE), (ExchangeMove(exchanges), EXCHANGE_SHARE)]
+        crossing = [(ExchangeMove(exchanges), EXCHANGE_SHARE)]
+        if jumps:
+            crossing = [(ExchangeMove(exchanges), EXCHANGE_SHARE / 2), (ModeJumpMove(jumps), JUMP_SHARE)]
+        return [(AlignedDEMove(exchanges), 1.0 - sum(w for _, w in crossing))] + crossing
     if proposal is None:
         return [(VectorisedDEMove(), 1.0)]
     return [(VectorisedDEMove(), 1.0 - PROPOSAL_SHARE), (IndependenceMove(*proposal), PROPOSAL_SHARE)]

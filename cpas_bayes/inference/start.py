@@ -176,6 +176,13 @@ def find_map(model: TestModel, rng, starts=6, guesses=None):
     return best_x, -best_f
 
 
+def local_map(model: TestModel, x0):
+    """The optimum of the log posterior nearest ``x0`` (the search of :func:`find_map` from one start):
+    ``(θ, log p)``."""
+    x, f = _polished_minimum(model, np.asarray(x0, float))
+    return x, -f
+
+
 _MAX_JITTER_TRIES = 100   # jittered draws per wanted start before find_map gives up looking for more
 _POLISH_GAIN = 0.05   # restart L-BFGS-B from its result while a run gains more than this in log p
 _MAX_POLISH = 6
