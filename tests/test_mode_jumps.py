@@ -171,3 +171,28 @@ def test_the_fit_warms_up_the_jumps_on_one_chunk_then_samples_both_pairings_and_
     assert seen_resumed == seen
     for a, b in zip(runs, resumed):
         np.testing.assert_array_equal(a.draws, b.draws)
+
+
+def test_a_map_on_the_edge_of_the_samplers_domain_still_gets_its_jump_and_a_map_outside_gets_none():
+    """Where a difference step leaves the sampler map's domain (a bound at the MAP), the other side's step
+    gives the Jacobian; where neither does, that pairing gets no jump, and the fit goes on without it
+    instead of failing."""
+    model = ShiftedModes()
+    start = np.array([1.0, 6.0, 0.0])
+    theta_map, lp_map, optima = other_pairings(model, start, float(model(start)[0]))
+    cov_map = laplace_covariance(model, theta_map)
+    edge = theta_map[0]
+
+    def bounded(x):      # NaN just above the MAP's first coordinate: its forward step is outside
+        x = np.atleast_2d(np.asarray(x, float))
+        return np.where((x[:, :1] > edge + 1e-12) & (x[:, :1] < edge + 1), np.nan, x)
+
+    (jump,) = mode_jumps(model, bounded, theta_map, lp_map, cov_map, optima)
+    np.testing.assert_allclose(np.diag(jump.chol_a), SD_A, rtol=0.01)
+
+    def nowhere(x):      # defined at the points themselves only
+        x = np.atleast_2d(np.asarray(x, float))
+        exact = np.isin(x[:, 2], [theta_map[2], optima[0][1][2]])
+        return np.where(exact[:, None], x, np.nan)
+
+    assert mode_jumps(model, nowhere, theta_map, lp_map, cov_map, optima) == []

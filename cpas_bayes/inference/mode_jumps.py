@@ -109,15 +109,25 @@ def other_pairings(model, theta_map, log_post_map, executor=None):
 
 def _sampler_laplace(to_sampler, theta, cov):
     """(u, Cholesky factor of the covariance in u) of a Laplace approximation N(θ, Σ) carried by the
-    sampler's map: Σ_u = J·Σ·Jᵀ, J the map's Jacobian by central differences (steps 1e-4 of each sd)."""
+    sampler's map: Σ_u = J·Σ·Jᵀ, J the map's Jacobian by differences (steps 1e-4 of each sd; one-sided
+    where a step leaves the map's domain, a bound). None where J or the factor cannot be had: no jump."""
     h = 1e-4 * np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    rows = np.concatenate([theta + np.diag(h), theta - np.diag(h)])
-    u = to_sampler(rows)
-    jac = ((u[: theta.size] - u[theta.size:]) / (2 * h)[:, None]).T
-    cov_u = jac @ cov @ jac.T
+    d = theta.size
+    u0 = to_sampler(theta[None])[0]
+    with np.errstate(all="ignore"):
+        up, down = to_sampler(theta + np.diag(h)), to_sampler(theta - np.diag(h))
+    ok_up, ok_down = np.isfinite(up).all(axis=1), np.isfinite(down).all(axis=1)
+    steps = np.where(ok_up & ok_down, 2 * h, h)[:, None]
+    jac = (np.where(ok_up[:, None], up, u0) - np.where(ok_down[:, None], down, u0)) / steps
+    if not (ok_up | ok_down).all() or not np.isfinite(jac).all() or jac.shape != (d, d):
+        return None
+    cov_u = jac.T @ cov @ jac
     w, v = np.linalg.eigh(0.5 * (cov_u + cov_u.T))
     cov_u = (v * np.maximum(w, 1e-12 * w.max())) @ v.T      # rounding must not make it indefinite
-    return to_sampler(theta[None])[0], np.linalg.cholesky(cov_u)
+    try:
+        return u0, np.linalg.cholesky(cov_u)
+    except np.linalg.LinAlgError:
+        return None
 
 
 def mode_jumps(target, to_sampler, theta_map, log_post_map, cov_map, optima):
@@ -129,13 +139,14 @@ def mode_jumps(target, to_sampler, theta_map, log_post_map, cov_map, optima):
     optima = [o for o in optima if log_post_map - o[2] <= JUMP_RANGE]
     if not optima:
         return []
-    mean_a, chol_a = _sampler_laplace(to_sampler, theta_map, cov_map)
+    at_map = _sampler_laplace(to_sampler, theta_map, cov_map)
     jumps = []
-    for i, theta, lp, cov in optima:
+    for i, theta, lp, cov in optima if at_map is not None else ():
         order = exchanges[i].order
-        mean_b, chol_b = _sampler_laplace(to_sampler, theta, cov)
-        jumps.append(ModeJump(tuple(order), bool(pairing_of(mean_a, order)[0]), mean_a, chol_a, mean_b,
-                              chol_b, float(log_post_map - lp)))
+        other = _sampler_laplace(to_sampler, theta, cov)
+        if other is not None:
+            jumps.append(ModeJump(tuple(order), bool(pairing_of(at_map[0], order)[0]), *at_map, *other,
+                                  float(log_post_map - lp)))
     return jumps
 
 
@@ -163,5 +174,9 @@ MIN_REFIT_DRAWS = 5    # per dimension, for a covariance estimate whose sds are 
 
 
 def _moments(x):
+    """(mean, Cholesky factor of the covariance) of rows ``x``, or None where the covariance is singular."""
     cov = np.cov(x.T)
-    return x.mean(axis=0), np.linalg.cholesky(cov + 1e-10 * np.diag(np.diag(cov)) + 1e-300 * np.eye(len(cov)))
+    try:
+        return x.mean(axis=0), np.linalg.cholesky(cov + 1e-10 * np.diag(np.diag(cov)))
+    except np.linalg.LinAlgError:
+        return None
