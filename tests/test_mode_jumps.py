@@ -118,7 +118,8 @@ def test_the_other_pairings_optimum_is_found_and_its_offset_is_the_jump():
     """From the MAP (1, 6, 0) the search started at its exchange (6, 1, 0) ends at the other mode's peak,
     (6, 1, 3), ln(0.7/0.3) + 3·ln(0.35/0.2) lower less the prior's 0.06 in its favour (N(3.5, 10²) each: the
     two peaks' squared distances from 3.5 sum to 24.75 and 12.75), and the jump's offset
-    goes from N((1, 6, 0), 0.2²) to N((6, 1, 3), 0.35²); a MAP started in the lighter mode is replaced by the heavier."""
+    goes from N((1, 6, 0), 0.2²) to N((6, 1, 3), 0.35²); a MAP started in the lighter mode is replaced by
+    the heavier."""
     model = ShiftedModes()
     theta_map, lp_map, optima = other_pairings(model, np.array([1.0, 6.0, 0.0]), float(model([1.0, 6.0, 0.0])[0]))
     (i, theta, lp, _), = optima

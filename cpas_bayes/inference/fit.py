@@ -286,8 +286,8 @@ def run_ensembles(model, inits, seeds, options: SamplerOptions, checkpoints=None
     ``model`` is the vectorised log posterior (with ``names``, and optionally ``log_scale``: the parameters
     whose adaptive proposal works in log θ); ``checkpoints`` one file (or None) per
     ensemble; ``executor`` default this process; ``jumps`` the label exchanges' mode jumps
-    (:mod:`cpas_bayes.inference.mode_jumps`, the ESS rule's chunks only). Returns ([:class:`EnsembleRun`], what the ESS rule saw
-    at its last check, empty under the τ rule).
+    (:mod:`cpas_bayes.inference.mode_jumps`; the ESS rule's chunks only). Returns ([:class:`EnsembleRun`],
+    what the ESS rule saw at its last check, empty under the τ rule).
     """
     from cpas_bayes.core.executor import Executor
 

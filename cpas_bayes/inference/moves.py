@@ -281,8 +281,8 @@ class ModeJumpMove(emcee.moves.Move):
 
 def ensemble_moves(proposal=None, exchanges=(), jumps=()):
     """emcee's moves for one chunk: differential evolution, mixed with label exchanges (a share of
-    :data:`EXCHANGE_SHARE`, half of it where ``jumps`` between the pairings' modes take
-    :data:`JUMP_SHARE`) when the model has any, else with the independence move when a proposal (μ, L, log columns) is given."""
+    :data:`EXCHANGE_SHARE`, half of it where ``jumps`` between the pairings' modes take :data:`JUMP_SHARE`)
+    when the model has any, else with the independence move when a proposal (μ, L, log columns) is given."""
     if exchanges:
         # Not with the independence move: one t fitted to draws of several pairings sits between them, and
         # was almost never accepted (a two-Drogue logger fit: 0.016 overall acceptance against 0.07).
