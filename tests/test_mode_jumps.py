@@ -197,3 +197,18 @@ def test_a_map_on_the_edge_of_the_samplers_domain_still_gets_its_jump_and_a_map_
         return np.where(exact[:, None], x, np.nan)
 
     assert mode_jumps(model, nowhere, theta_map, lp_map, cov_map, optima) == []
+
+
+def test_the_fit_commands_pairing_note_names_the_exchanges_and_the_jumps_gaps():
+    """What ``cpas-bayes fit`` prints under its stage table for like canopies without a load cell; nothing
+    where there are none (and for a summary written before the exchanges)."""
+    from cpas_bayes.inference.fit_folder import pairing_note
+
+    summary = {"sampler": {"label_exchanges": ["D1<->D2 s1", "D1<->D2 s2"]},
+               "diagnostics": {"mode_jump_gaps": [0.7753]}}
+    note = pairing_note(summary)
+    assert "D1<->D2 s1, D1<->D2 s2" in note and "mode jumps to 1 other pairing," in note and "0.775 below" in note
+    summary["diagnostics"]["mode_jump_gaps"] = []
+    assert "no other pairing's optimum within reach" in pairing_note(summary)
+    assert pairing_note({"sampler": {"label_exchanges": []}, "diagnostics": {}}) is None
+    assert pairing_note({"sampler": {}, "diagnostics": {}}) is None

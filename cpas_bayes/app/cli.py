@@ -294,7 +294,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.data.bundle import read_bundle
     from cpas_bayes.data.reduction import reduce_test
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
-    from cpas_bayes.inference.fit_folder import fill_time_table, record_checks, write_fit_files
+    from cpas_bayes.inference.fit_folder import fill_time_table, pairing_note, record_checks, write_fit_files
     from cpas_bayes.inference.predictive_checks import run_checks
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
@@ -328,7 +328,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
                f"ESS bulk min {d['ess_bulk_min']:.0f}, tail min {d['ess_tail_min']:.0f}, tau max "
                f"{d['tau_max']:.0f} steps, {max(d['steps'])} steps per ensemble (stop rule {stop}), "
                f"acceptance {d['acceptance']:.2f}")
-    click.echo(fill_time_table(fit.summary))
+    click.echo("\n".join(filter(None, (fill_time_table(fit.summary), pairing_note(fit.summary)))))
     for w in warnings:
         click.echo(f"WARNING [{w['code']}] {w['message']}")
     click.echo(f"{len(warnings) or 'no'} fit health warning{'s' if len(warnings) != 1 else ''}; wrote "

@@ -247,6 +247,20 @@ def fill_time_table(summary):
     return "\n".join(lines)
 
 
+def pairing_note(summary):
+    """A line on the label exchanges of like canopies without a load cell and the mode jumps between their
+    pairings (:mod:`cpas_bayes.inference.mode_jumps`), or None where the model has none."""
+    exchanges = summary.get("sampler", {}).get("label_exchanges") or []
+    if not exchanges:
+        return None
+    gaps = summary.get("diagnostics", {}).get("mode_jump_gaps") or []
+    jumps = (f"mode jumps to {len(gaps)} other pairing{'s' if len(gaps) != 1 else ''}, whose optima lie "
+             + ", ".join(f"{g:.3g}" for g in gaps) + " below the MAP in log posterior") if gaps else \
+        "no other pairing's optimum within reach of a mode jump"
+    return (f"like canopies that no channel tells apart: label exchanges {', '.join(exchanges)}; {jumps} "
+            "(a pairing's share of the draws is in posterior.nc: the order of the stage starts)")
+
+
 def record_checks(fit, checks, out=None):
     """Add the warnings that need the fit's checks (PPC) to ``fit.summary`` and, with ``out``, rewrite
     its ``summary.json``; returns the warnings."""
