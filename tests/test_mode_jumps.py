@@ -207,7 +207,9 @@ def test_the_fit_commands_pairing_note_names_the_exchanges_and_the_jumps_gaps():
     summary = {"sampler": {"label_exchanges": ["D1<->D2 s1", "D1<->D2 s2"]},
                "diagnostics": {"mode_jump_gaps": [0.7753]}}
     note = pairing_note(summary)
-    assert "D1<->D2 s1, D1<->D2 s2" in note and "mode jumps to 1 other pairing," in note and "0.775 below" in note
+    assert "D1<->D2 s1, D1<->D2 s2" in note and "mode jumps to 1 other pairing, whose optimum lies 0.775 below" in note
+    summary["diagnostics"]["mode_jump_gaps"] = [1.36, 15.0]
+    assert "mode jumps to 2 other pairings, whose optima lie 1.36, 15 below" in pairing_note(summary)
     summary["diagnostics"]["mode_jump_gaps"] = []
     assert "no other pairing's optimum within reach" in pairing_note(summary)
     assert pairing_note({"sampler": {"label_exchanges": []}, "diagnostics": {}}) is None

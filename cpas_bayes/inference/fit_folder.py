@@ -254,8 +254,9 @@ def pairing_note(summary):
     if not exchanges:
         return None
     gaps = summary.get("diagnostics", {}).get("mode_jump_gaps") or []
-    jumps = (f"mode jumps to {len(gaps)} other pairing{'s' if len(gaps) != 1 else ''}, whose optima lie "
-             + ", ".join(f"{g:.3g}" for g in gaps) + " below the MAP in log posterior") if gaps else \
+    whose = "s, whose optima lie" if len(gaps) != 1 else ", whose optimum lies"
+    jumps = (f"mode jumps to {len(gaps)} other pairing{whose} " + ", ".join(f"{g:.3g}" for g in gaps)
+             + " below the MAP in log posterior") if gaps else \
         "no other pairing's optimum within reach of a mode jump"
     return (f"like canopies that no channel tells apart: label exchanges {', '.join(exchanges)}; {jumps} "
             "(a pairing's share of the draws is in posterior.nc: the order of the stage starts)")
