@@ -13,7 +13,9 @@ a walker of the MAP's pairing A jumps by the affine map that carries N(μ_A, Σ_
 q = μ_B + L_B·L_A⁻¹·(s − μ_A); from B, by its inverse (mode jumping with a deterministic map, Tjelmeland &
 Hegstad 2001). A q that does not land in the other pairing is refused; the rest are accepted with
 min(1, p(q)·|det L_B / det L_A|^(±1) / p(s)) (:class:`cpas_bayes.inference.moves.ModeJumpMove`). On two
-Gaussian modes that is min(1, w_B/w_A): the move crosses as often as the modes' weights allow.
+Gaussian modes that is min(1, w_B/w_A): the move crosses as often as the modes' weights allow. The
+Laplace shapes serve the sampler's first chunk only: they fit these modes poorly, so after it each jump is
+refitted to its draws' own mean and covariance in each pairing (:func:`refit_jumps`) and frozen.
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ class ModeJump:
 
     ``order``: the columns of the exchanged stage's two starts, whose order tells the pairing; ``side``: the
     MAP's pairing (whether the first start is earlier); ``mean_a``, ``chol_a`` and ``mean_b``, ``chol_b``:
-    the optimum and the Cholesky factor of the Laplace covariance of the MAP's pairing and of the other.
+    the centre and the Cholesky factor of the covariance of the MAP's pairing and of the other (the optima
+    and their Laplace covariances, or the draws' moments once refitted).
     """
 
     order: tuple
