@@ -227,23 +227,30 @@ class ExchangeMove(emcee.moves.Move):
         self.exchanges = tuple(exchanges)
 
     def propose(self, model, state):
-        n = state.coords.shape[0]
+        s = state.coords
+        n = s.shape[0]
         pick = model.random.randint(len(self.exchanges), size=n)
-        q = state.coords.copy()
-        for e, exchange in enumerate(self.exchanges):
-            rows = pick == e
-            if rows.any():
-                q[rows] = exchange.apply(state.coords[rows])
-        new_log_prob = np.asarray(model.log_prob_fn(q), dtype=float)
+        q = s.copy()
         factor = np.zeros(n)     # log|∂q/∂s|: 0 for an exchange of θ, not always for one carried into u
         for e, exchange in enumerate(self.exchanges):
             rows = pick == e
-            if rows.any() and hasattr(exchange, "log_factor"):
-                factor[rows] = exchange.log_factor(state.coords[rows], q[rows])
-        with np.errstate(invalid="ignore"):
-            accepted = new_log_prob - state.log_prob + factor > np.log(model.random.rand(n))   # NaN: rejected
-        state = self.update(state, emcee.State(q, log_prob=new_log_prob), accepted)
-        return state, accepted
+            if rows.any():
+                q[rows] = exchange.apply(s[rows])
+                if hasattr(exchange, "log_factor"):
+                    factor[rows] = exchange.log_factor(s[rows], q[rows])
+        return _involution_step(self, model, state, q, np.ones(n, bool), factor)
+
+
+def _involution_step(move, model, state, q, valid, factor):
+    """Metropolis for deterministic proposals: each walker's q (an involution's image where ``valid``) is
+    accepted with min(1, p(q)·e^factor / p(s)), factor its log|∂q/∂s|; the others stay. (state, accepted)."""
+    n = q.shape[0]
+    new_log_prob = np.full(n, -np.inf)
+    if valid.any():
+        new_log_prob[valid] = np.asarray(model.log_prob_fn(q[valid]), dtype=float)
+    with np.errstate(invalid="ignore"):
+        accepted = valid & (new_log_prob - state.log_prob + factor > np.log(model.random.rand(n)))  # NaN: refused
+    return move.update(state, emcee.State(q, log_prob=new_log_prob), accepted), accepted
 
 
 class ModeJumpMove(emcee.moves.Move):
@@ -270,13 +277,7 @@ class ModeJumpMove(emcee.moves.Move):
             rows = pick == k
             if rows.any():
                 q[rows], crossed[rows], factor[rows] = self.jumps[k].apply(s[rows])
-        new_log_prob = np.full(n, -np.inf)
-        if crossed.any():
-            new_log_prob[crossed] = np.asarray(model.log_prob_fn(q[crossed]), dtype=float)
-        with np.errstate(invalid="ignore"):
-            accepted = crossed & (new_log_prob - state.log_prob + factor > np.log(model.random.rand(n)))
-        state = self.update(state, emcee.State(q, log_prob=new_log_prob), accepted)
-        return state, accepted
+        return _involution_step(self, model, state, q, crossed, factor)
 
 
 def ensemble_moves(proposal=None, exchanges=(), jumps=()):
