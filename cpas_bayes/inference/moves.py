@@ -257,8 +257,9 @@ class ModeJumpMove(emcee.moves.Move):
     """Jumps between the pairings of like canopies (:class:`cpas_bayes.inference.mode_jumps.ModeJump`).
 
     Each walker s takes one jump drawn uniformly: the affine map that carries the Gaussian of its pairing's
-    mode (Laplace's in the warm-up, the draws' moments after it) onto the other's. The map is an involution where it crosses between the pairings,
-    so a q that stays in s's own pairing is refused and the rest accepted with min(1, p(q)·|∂q/∂s| / p(s)).
+    mode (Laplace's in the warm-up, the draws' moments after it) onto the other's. The map is an involution
+    where it crosses between the pairings, so a q that stays in s's own pairing is refused and the rest
+    accepted with min(1, p(q)·|∂q/∂s| / p(s)).
     """
 
     def __init__(self, jumps):
