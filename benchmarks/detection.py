@@ -18,9 +18,11 @@ the end (and written next to the CSV as ``.md``) is the README's:
 * pairs — two catalogued effects at once; right = both named;
 * power — each catalogued effect at fixed sizes; right = named (an
   ``unexplained`` beside it is allowed);
-* form — added mass simulated with a form the term was not written for
-  (another exponent of drag area, a lagged mass; ``added_mass_form``);
-  right = ``added_mass`` named.
+* form — a catalogued cause simulated with a form its term was not
+  written for (``synth_effects.FORM_VARIANTS``: added mass of another
+  exponent of drag area and lagged, ``added_mass_form``; a friction factor
+  settling exponentially, not a ramp, ``friction_drift_form``); right = the
+  cause named.
 
 Seeds: case k of a study uses seed 10_000·(study index) + k, so every study
 draws its own truths and noise.
@@ -46,7 +48,7 @@ FIELDS = ["study", "scenario", "effect", "magnitude", "seed", "mode", "expected"
 
 
 def cases(studies, seeds, scenarios):
-    from cpas_bayes.data.synth_effects import OUT_OF_CATALOGUE
+    from cpas_bayes.data.synth_effects import FORM_VARIANTS, OUT_OF_CATALOGUE
 
     for s_index, study in enumerate(STUDIES):
         if study not in studies:
@@ -63,8 +65,9 @@ def cases(studies, seeds, scenarios):
             for k in range(seeds):
                 yield study, scenarios[k % len(scenarios)], PAIRS[k % len(PAIRS)], None, base + k
         elif study == "form":
-            for k in range(seeds):
-                yield study, scenarios[k % len(scenarios)], "added_mass_form", None, base + k
+            for effect in FORM_VARIANTS:
+                for k in range(seeds):
+                    yield study, scenarios[k % len(scenarios)], effect, None, base + k
         else:
             for effect, sizes in POWER_SIZES.items():
                 for size in sizes:
@@ -73,12 +76,14 @@ def cases(studies, seeds, scenarios):
 
 
 def expected(study, effect):
+    from cpas_bayes.data.synth_effects import FORM_VARIANTS
+
     if study == "clean":
         return "none"
     if study == "ooc":
         return "unexplained"
     if study == "form":
-        return "added_mass"
+        return FORM_VARIANTS[effect]
     return effect
 
 

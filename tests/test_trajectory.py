@@ -14,8 +14,8 @@ import pytest
 
 from cpas_bayes.physics.atmosphere import geopotential_altitude, standard_atmosphere
 from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
-from cpas_bayes.physics.effects import (added_mass, breathing_factor, friction_scale, lagged, riser_tension,
-                                sensed_load_factor)
+from cpas_bayes.physics.effects import (added_mass, breathing_factor, friction_scale, friction_settle, lagged,
+                                        riser_tension, sensed_load_factor)
 from cpas_bayes.data.synth import truth_from_bundle
 from cpas_bayes.physics.trajectory import (BreathingParameters, ClusterParameters, SimulationOptions, VehicleProperties,
                                    VehicleState0, composite_cluster, simulate, single_run)
@@ -91,6 +91,14 @@ def test_breathing_factor_starts_at_one_and_dies_out():
     assert abs(b[3] - 1.0) < 1e-6
     with pytest.raises(ValueError):
         breathing_factor(tau, 0.05, 1.0, 1.0)
+
+
+def test_friction_settle_holds_then_decays_exponentially():
+    t = np.array([0.0, 5.0, 7.0, 9.0, 1e3])
+    np.testing.assert_allclose(friction_settle(t, 1.16, 1.10, 5.0, 2.0),
+                               [1.16, 1.16, 1.10 + 0.06 / np.e, 1.10 + 0.06 / np.e**2, 1.10])
+    with pytest.raises(ValueError, match="tau > 0"):
+        friction_settle(t, 1.16, 1.10, 5.0, 0.0)
 
 
 def test_friction_scale_ramps_linearly_and_holds_outside():

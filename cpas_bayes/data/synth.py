@@ -74,7 +74,7 @@ import pandas as pd
 from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle
 from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data import synth_effects as fx
-from cpas_bayes.physics.effects import friction_scale, lagged
+from cpas_bayes.physics.effects import friction_scale, friction_settle, lagged
 from cpas_bayes.physics.inflation import n_from_n_p, overinflation_ratio
 from cpas_bayes.physics.trajectory import (BreathingParameters, ClusterParameters, SimulationOptions, TrajectoryResult,
                          VehicleProperties, VehicleState0, simulate)
@@ -321,6 +321,11 @@ def _complete_params(truth: SyntheticTruth, result: TrajectoryResult, parts: dic
     """Fill in, in place, what effects take from the truth and the simulation (friction ramp, ceiling, tare)."""
     if "friction_drift" in parts and "scale_start" not in parts["friction_drift"]:
         parts["friction_drift"].update(_friction_ramp(truth, parts["friction_drift"]["magnitude"]))
+    settle = parts.get("friction_drift_form")
+    if settle is not None and "scale_start" not in settle:
+        t_start = float(np.mean([c.stages[0].start for c in truth.chutes]))
+        settle.update(scale_start=truth.load_scale + settle["magnitude"], scale_end=truth.load_scale,
+                      t_start=t_start, tau=settle["time_constant_fraction"] * (truth.duration - t_start))
     fx.complete_hidden_params(parts, result.load_factor[0].max(), result.peak_tension[0], _stage_starts(truth),
                            [c.id for c in truth.chutes], truth.load_scale, US.si(1.0, "force"))
 
@@ -377,7 +382,7 @@ def load_cell_readings(truth: SyntheticTruth, result: TrajectoryResult, effect: 
                        theta_deg) -> np.ndarray:
     """Noise-free load-cell readings (P, T), N: F_i / (s(t)·cos θ_i), delayed under ``sensor_lag``.
 
-    ``effect_params`` of ``friction_drift`` must hold the ramp (see
+    ``effect_params`` of ``friction_drift`` must hold the ramp, those of ``friction_drift_form`` its settle (see
     :func:`simulate_test`), those of a tare shift its ``shift_lbf``;
     ``theta_deg`` (P, T) or 0. Ringing and a tare shift come before the delay.
     """
@@ -386,6 +391,9 @@ def load_cell_readings(truth: SyntheticTruth, result: TrajectoryResult, effect: 
     if "friction_drift" in parts:
         f = parts["friction_drift"]
         scale = friction_scale(time, f["scale_start"], f["scale_end"], f["t_start"], f["t_end"])
+    elif "friction_drift_form" in parts:
+        f = parts["friction_drift_form"]
+        scale = friction_settle(time, f["scale_start"], f["scale_end"], f["t_start"], f["tau"])
     else:
         scale = np.full(len(time), truth.load_scale)
     reading = result.tension[0] / (scale * np.cos(np.radians(theta_deg)))

@@ -53,25 +53,30 @@ hundreds of samples of the deceleration; clipping 15 %, G ≈ 11–14σ on
 30–90 samples; ringing 15 %, ≈ 6–10σ peaks at each disreef; tare shift 5 %,
 ≈ 6–10σ on every sample after it (≥ 500 lbf against σ ≈ 60–150 lbf).
 
-Form variant (cause "added_mass")
----------------------------------
-================ ================================================= ========== ============ ==============
-effect           what                                              magnitude  drawn        form, drawn
-================ ================================================= ========== ============ ==============
-added_mass_form  m_a = k_a·ρ·CDS_o^(3/2)·(CDS/CDS_o)^p (effects     k_a        0.2 – 1.0    p 1.25 – 1.75,
-                 Eq. A1') reached through a first-order lag τ_m                (limits      τ_m 0.05 –
-                 (``SimulationOptions.added_mass_exponent`` and                [0, 5])      0.20 s
-                 ``added_mass_lag``), in the dynamics
-================ ================================================= ========== ============ ==============
+Form variants (causes "added_mass", "friction_drift")
+-----------------------------------------------------
+=================== ============================================== ========== ============ ==============
+effect              what                                           magnitude  drawn        form, drawn
+=================== ============================================== ========== ============ ==============
+added_mass_form     m_a = k_a·ρ·CDS_o^(3/2)·(CDS/CDS_o)^p (effects k_a        0.2 – 1.0    p 1.25 – 1.75,
+                    Eq. A1') reached through a first-order lag τ_m            (limits      τ_m 0.05 –
+                    (``SimulationOptions.added_mass_exponent`` and            [0, 5])      0.20 s
+                    ``added_mass_lag``), in the dynamics
+friction_drift_form friction factor settling exponentially from    s_start −  0.03 – 0.08  τ 0.10 – 0.35
+                    s_start to s_end after the first stage start   s_end      (limits      of the record
+                    (``effects.friction_settle``), not a ramp                 ±0.5)        after t_start
+=================== ============================================== ========== ============ ==============
 
-With p = 1.5 and τ_m = 0 it is ``added_mass`` exactly. The diagnosis' term
-is Eq. A1 (p = 1.5, no lag): the cause is catalogued, its form is not.
+With p = 1.5 and τ_m = 0 the first is ``added_mass`` exactly; the
+diagnosis fits p and τ_m. The second is no ramp at all, and the
+diagnosis' ``friction_drift`` is a ramp (with fitted ends): the causes are
+catalogued, these forms are not.
 
 Pairs
 -----
 ``"a+b"`` simulates two different effects at once, each with its own
 magnitude (``magnitude`` None, or a pair of values each None or a number).
-"none" does not pair, nor do two forms of added mass. Dynamic effects (added
+"none" does not pair, nor do two forms of one cause (added mass, friction drift). Dynamic effects (added
 mass in either form, breathing) enter the dynamics together; on a load cell
 the reading is F/(s·cos θ), then ringing, then a tare shift, then the
 sensor_lag delay.
@@ -95,7 +100,7 @@ from cpas_bayes.physics.effects import first_order_lag, load_path_ringing
 
 CATALOGUED_EFFECTS = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 OUT_OF_CATALOGUE = ("pitot_lag", "accelerometer_clipping", "riser_ringing", "load_cell_tare_shift")
-FORM_VARIANTS = {"added_mass_form": "added_mass"}   # effect → its catalogued cause
+FORM_VARIANTS = {"added_mass_form": "added_mass", "friction_drift_form": "friction_drift"}   # effect → cause
 HIDDEN_EFFECTS = OUT_OF_CATALOGUE + tuple(FORM_VARIANTS)
 ALL_EFFECTS = ("none",) + CATALOGUED_EFFECTS + HIDDEN_EFFECTS
 DYNAMIC_EFFECTS = ("added_mass", "canopy_breathing", "added_mass_form")
@@ -108,6 +113,7 @@ HIDDEN_MAGNITUDE_RANGE = {
     "riser_ringing": (0.15, 0.30),           # relative amplitude A
     "load_cell_tare_shift": (0.05, 0.10),    # shift / the cell's peak reading
     "added_mass_form": (0.2, 1.0),           # k_a
+    "friction_drift_form": (0.03, 0.08),     # s_start − s_end
 }
 # (low, high, low included, high included, what it is), as synth.EFFECT_MAGNITUDE_LIMITS.
 HIDDEN_MAGNITUDE_LIMITS = {
@@ -116,11 +122,13 @@ HIDDEN_MAGNITUDE_LIMITS = {
     "riser_ringing": (0.0, 0.5, False, True, "the ringing's relative amplitude A"),
     "load_cell_tare_shift": (0.0, 0.5, False, True, "the zero shift as a fraction of the cell's peak"),
     "added_mass_form": (0.0, 5.0, True, True, "k_a"),
+    "friction_drift_form": (-0.5, 0.5, False, False, "the fall of the friction factor"),
 }
 RINGING_FREQUENCY_HZ = (3.0, 8.0)
 RINGING_DAMPING_RATIO = (0.03, 0.10)  # lightly damped: webbing, links, the cell's own structure
 ADDED_MASS_FORM_EXPONENT = (1.25, 1.75)
 ADDED_MASS_FORM_LAG = (0.05, 0.20)  # s
+FRICTION_FORM_TIME_CONSTANT = (0.10, 0.35)  # of the record after the first stage start
 
 
 def effect_components(effect: str) -> tuple[str, ...]:
@@ -139,8 +147,9 @@ def effect_components(effect: str) -> tuple[str, ...]:
             raise ValueError(f"'none' does not pair with an effect: {effect!r}")
         if names[0] == names[1]:
             raise ValueError(f"a pair needs two different effects: {effect!r}")
-        if {cause_of(n) for n in names} == {"added_mass"}:
-            raise ValueError(f"two forms of added mass do not pair: {effect!r}")
+        causes = [cause_of(n) for n in names]
+        if causes[0] == causes[1] != UNEXPLAINED:
+            raise ValueError(f"two forms of {causes[0].replace('_', ' ')} do not pair: {effect!r}")
     return names
 
 
@@ -230,6 +239,8 @@ def draw_hidden_params(effect: str, rng: np.random.Generator, value: float, n_ch
     if effect == "added_mass_form":
         return {"magnitude": value, "k_a": value, "exponent": float(rng.uniform(*ADDED_MASS_FORM_EXPONENT)),
                 "mass_lag": float(rng.uniform(*ADDED_MASS_FORM_LAG))}
+    if effect == "friction_drift_form":
+        return {"magnitude": value, "time_constant_fraction": float(rng.uniform(*FRICTION_FORM_TIME_CONSTANT))}
     raise ValueError(f"{effect!r} is not a hidden effect; use one of {', '.join(HIDDEN_EFFECTS)}")
 
 

@@ -335,6 +335,23 @@ def friction_scale(t, s_start, s_end, t_start, t_end):
     return s_start + (s_end - s_start) * frac
 
 
+def friction_settle(t, s_start, s_end, t_start, tau):
+    """Load-cell friction factor settling exponentially from ``s_start`` toward ``s_end`` after ``t_start``
+    (a fairlead or swivel wearing in: fast at first, then ever slower)::
+
+        s(t) = s_start                                               t ≤ t_start
+        s(t) = s_end + (s_start − s_end)·exp(−(t − t_start)/τ)       t > t_start
+
+    Not a ramp: the form the diagnosis' ``friction_drift`` term was not written for. Shapes as
+    :func:`friction_scale`; ``tau`` > 0.
+    """
+    t = np.asarray(t, float)
+    s_start, s_end, t_start, tau = (np.asarray(a, float)[..., None] for a in (s_start, s_end, t_start, tau))
+    if np.any(tau <= 0):
+        raise ValueError("friction_settle needs tau > 0")
+    return s_end + (s_start - s_end) * np.exp(-np.clip(t - t_start, 0.0, None) / tau)
+
+
 def lagged(t, values, lag):
     """A channel delayed by ``lag`` seconds: values(t − lag), linear interpolation.
 
