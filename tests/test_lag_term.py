@@ -29,7 +29,7 @@ def _twins(scenario, seed):
 
 
 def _values(model, truth, lag):
-    known = {"noise_acc": 1.0, "noise_lc": 1.0, "lag": lag}
+    known = {"noise_acc": 1.0, "noise_lc": 1.0, "lag": lag, "lag_response": 0.0}   # a pure delay, as simulated
     return np.array([truth.get(n, known.get(n, np.nan)) for n in model.names])
 
 

@@ -20,7 +20,7 @@ from cpas_bayes.physics.effects import first_order_lag, lagged, load_path_ringin
 SEED = 20240611
 AIR_DATA = ["qbar", "qbar_sigma", "airspeed"]
 SIZES = {"pitot_lag": 0.2, "accelerometer_clipping": 0.2, "riser_ringing": 0.2, "load_cell_tare_shift": 0.08,
-         "added_mass_form": 0.6, "friction_drift_form": 0.05}
+         "added_mass_form": 0.6, "friction_drift_form": 0.05, "sensor_lag_form": 0.05}
 
 
 def load_cells(test, ids=None):
@@ -52,7 +52,8 @@ def test_catalogue_and_the_rest_are_told_apart():
     assert not set(HIDDEN_EFFECTS) & set(EFFECTS) and len(OUT_OF_CATALOGUE) >= 3
     assert set(HIDDEN_MAGNITUDE_RANGE) == set(HIDDEN_MAGNITUDE_LIMITS) == set(HIDDEN_EFFECTS)
     assert {cause_of(e) for e in OUT_OF_CATALOGUE} == {"unexplained"}
-    assert FORM_VARIANTS == {"added_mass_form": "added_mass", "friction_drift_form": "friction_drift"}
+    assert FORM_VARIANTS == {"added_mass_form": "added_mass", "friction_drift_form": "friction_drift",
+                             "sensor_lag_form": "sensor_lag"}
     assert all(cause_of(e) == c for e, c in FORM_VARIANTS.items())
     assert [cause_of(e) for e in EFFECTS] == list(EFFECTS)
 
@@ -63,6 +64,7 @@ def test_catalogue_and_the_rest_are_told_apart():
     ("riser_ringing", None),                  # every load cell and its sigma
     ("load_cell_tare_shift", "one cell"),
     ("friction_drift_form", None),
+    ("sensor_lag_form", None),
 ])
 def test_each_instrument_effect_changes_only_its_channels(drogue, effect, expected):
     base, base_truth = drogue["none"]
@@ -241,7 +243,7 @@ def test_a_pair_of_a_sensor_and_a_dynamic_effect():
 
 
 @pytest.mark.parametrize("effect", ["none+sensor_lag", "sensor_lag+sensor_lag", "added_mass+added_mass_form",
-                                    "friction_drift_form+friction_drift",
+                                    "friction_drift_form+friction_drift", "sensor_lag+sensor_lag_form",
                                     "pitot_lag+sensor_lag+added_mass", "gremlins", "pitot_lag+gremlins"])
 def test_impossible_effects_are_refused(effect):
     with pytest.raises(ValueError):

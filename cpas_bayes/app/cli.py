@@ -204,8 +204,8 @@ def _effect_name(ctx, param, value):
 @click.option("--effect", default="none", show_default=True, callback=_effect_name,
               help="Hidden effect to put in the data: none; catalogued: added_mass, friction_drift, sensor_lag, "
                    "canopy_breathing; outside the catalogue: pitot_lag, accelerometer_clipping, riser_ringing, "
-                   "load_cell_tare_shift; form variants: added_mass_form, friction_drift_form; or two joined by '+' "
-                   "(e.g. sensor_lag+canopy_breathing).")
+                   "load_cell_tare_shift; form variants: added_mass_form, friction_drift_form, sensor_lag_form; or two "
+                   "joined by '+' (e.g. sensor_lag+canopy_breathing).")
 @click.option("--magnitude", type=float, multiple=True,
               help="Effect size (k_a; friction drop; lag in s; breathing amplitude; see cpas_bayes.data.synth_effects "
                    "for the others). Drawn from the seed if omitted; a pair takes it twice, in the pair's order.")

@@ -74,7 +74,7 @@ import pandas as pd
 from cpas_bayes.data.bundle import FlightTest, Parachute, Stage, Vehicle
 from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data import synth_effects as fx
-from cpas_bayes.physics.effects import friction_scale, friction_settle, lagged
+from cpas_bayes.physics.effects import first_order_lag, friction_scale, friction_settle, lagged
 from cpas_bayes.physics.inflation import n_from_n_p, overinflation_ratio
 from cpas_bayes.physics.trajectory import (BreathingParameters, ClusterParameters, SimulationOptions, TrajectoryResult,
                          VehicleProperties, VehicleState0, simulate)
@@ -380,7 +380,8 @@ def _stated_stages(chute: ChuteTruth, rng):
 
 def load_cell_readings(truth: SyntheticTruth, result: TrajectoryResult, effect: str, effect_params: dict,
                        theta_deg) -> np.ndarray:
-    """Noise-free load-cell readings (P, T), N: F_i / (s(t)·cos θ_i), delayed under ``sensor_lag``.
+    """Noise-free load-cell readings (P, T), N: F_i / (s(t)·cos θ_i), delayed under ``sensor_lag`` (a first-order
+    response under ``sensor_lag_form``).
 
     ``effect_params`` of ``friction_drift`` must hold the ramp, those of ``friction_drift_form`` its settle (see
     :func:`simulate_test`), those of a tare shift its ``shift_lbf``;
@@ -400,6 +401,8 @@ def load_cell_readings(truth: SyntheticTruth, result: TrajectoryResult, effect: 
     reading = fx.hidden_load_cell_readings(time, reading, _stage_starts(truth), parts, US.si(1.0, "force"))
     if "sensor_lag" in parts:
         reading = lagged(time, reading, parts["sensor_lag"]["lag"])
+    elif "sensor_lag_form" in parts:
+        reading = first_order_lag(time, reading, parts["sensor_lag_form"]["tau"])
     return reading
 
 

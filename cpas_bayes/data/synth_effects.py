@@ -65,18 +65,22 @@ added_mass_form     m_a = k_a·ρ·CDS_o^(3/2)·(CDS/CDS_o)^p (effects k_a      
 friction_drift_form friction factor settling exponentially from    s_start −  0.03 – 0.08  τ 0.10 – 0.35
                     s_start to s_end after the first stage start   s_end      (limits      of the record
                     (``effects.friction_settle``), not a ramp                 ±0.5)        after t_start
+sensor_lag_form     load cells seen through a first-order response τ, s       0.02 – 0.08  —
+                    (``effects.first_order_lag``), not a pure                 (limits
+                    delay                                                     (0, 1])
 =================== ============================================== ========== ============ ==============
 
 With p = 1.5 and τ_m = 0 the first is ``added_mass`` exactly; the
 diagnosis fits p and τ_m. The second is no ramp at all, and the
-diagnosis' ``friction_drift`` is a ramp (with fitted ends): the causes are
-catalogued, these forms are not.
+diagnosis' ``friction_drift`` is a ramp (with fitted ends). The third is
+no delay: the diagnosis' ``sensor_lag`` fits a delay and a first-order
+response together. The causes are catalogued, these forms are not.
 
 Pairs
 -----
 ``"a+b"`` simulates two different effects at once, each with its own
 magnitude (``magnitude`` None, or a pair of values each None or a number).
-"none" does not pair, nor do two forms of one cause (added mass, friction drift). Dynamic effects (added
+"none" does not pair, nor do two forms of one cause (added mass, friction drift, sensor lag). Dynamic effects (added
 mass in either form, breathing) enter the dynamics together; on a load cell
 the reading is F/(s·cos θ), then ringing, then a tare shift, then the
 sensor_lag delay.
@@ -100,7 +104,8 @@ from cpas_bayes.physics.effects import first_order_lag, load_path_ringing
 
 CATALOGUED_EFFECTS = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 OUT_OF_CATALOGUE = ("pitot_lag", "accelerometer_clipping", "riser_ringing", "load_cell_tare_shift")
-FORM_VARIANTS = {"added_mass_form": "added_mass", "friction_drift_form": "friction_drift"}   # effect → cause
+FORM_VARIANTS = {"added_mass_form": "added_mass", "friction_drift_form": "friction_drift",
+                 "sensor_lag_form": "sensor_lag"}   # effect → its catalogued cause
 HIDDEN_EFFECTS = OUT_OF_CATALOGUE + tuple(FORM_VARIANTS)
 ALL_EFFECTS = ("none",) + CATALOGUED_EFFECTS + HIDDEN_EFFECTS
 DYNAMIC_EFFECTS = ("added_mass", "canopy_breathing", "added_mass_form")
@@ -114,6 +119,7 @@ HIDDEN_MAGNITUDE_RANGE = {
     "load_cell_tare_shift": (0.05, 0.10),    # shift / the cell's peak reading
     "added_mass_form": (0.2, 1.0),           # k_a
     "friction_drift_form": (0.03, 0.08),     # s_start − s_end
+    "sensor_lag_form": (0.02, 0.08),         # τ, s
 }
 # (low, high, low included, high included, what it is), as synth.EFFECT_MAGNITUDE_LIMITS.
 HIDDEN_MAGNITUDE_LIMITS = {
@@ -123,6 +129,7 @@ HIDDEN_MAGNITUDE_LIMITS = {
     "load_cell_tare_shift": (0.0, 0.5, False, True, "the zero shift as a fraction of the cell's peak"),
     "added_mass_form": (0.0, 5.0, True, True, "k_a"),
     "friction_drift_form": (-0.5, 0.5, False, False, "the fall of the friction factor"),
+    "sensor_lag_form": (0.0, 1.0, False, True, "the load cells' response time constant in s"),
 }
 RINGING_FREQUENCY_HZ = (3.0, 8.0)
 RINGING_DAMPING_RATIO = (0.03, 0.10)  # lightly damped: webbing, links, the cell's own structure
@@ -241,6 +248,8 @@ def draw_hidden_params(effect: str, rng: np.random.Generator, value: float, n_ch
                 "mass_lag": float(rng.uniform(*ADDED_MASS_FORM_LAG))}
     if effect == "friction_drift_form":
         return {"magnitude": value, "time_constant_fraction": float(rng.uniform(*FRICTION_FORM_TIME_CONSTANT))}
+    if effect == "sensor_lag_form":
+        return {"magnitude": value, "tau": value}
     raise ValueError(f"{effect!r} is not a hidden effect; use one of {', '.join(HIDDEN_EFFECTS)}")
 
 

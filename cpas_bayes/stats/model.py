@@ -19,8 +19,8 @@ that turns a batch of parameter vectors θ (B, D) into predicted observations:
 
        lc_i(t) = [q̄(t−δ)·CDS_i(t−δ) − W_p,i·G(t−δ)] / (s·q̄(t)) + W_p,i·G(t)/q̄(t)
 
-   with s the friction factor (true load / reading) and δ a load-cell lag
-   (0 in the baseline, where lc_i = CDS_i/s + (1 − 1/s)·W_p,i·G/q̄);
+   with s the friction factor (true load / reading) and δ a load-cell lag (a first-order cell's response:
+   a weighted sum over a few δ; 0 in the baseline, where lc_i = CDS_i/s + (1 − 1/s)·W_p,i·G/q̄);
 4. noise: Gaussian errors, independent from one time bin to the next; within a
    bin the channels share the measured q̄'s error (both Eq. 8 and Eq. 11 divide
    by it), so their covariance is Λ·(D + u·uᵀ)·Λ with D the independent
@@ -414,11 +414,7 @@ class TestModel:
             if f is not None:
                 factor = f
         s = scale if factor is None else factor               # (B, 1) or (B, N)
-        lag = None
-        for ext in self.extensions:
-            d = ext.load_cell_lag(ctx)
-            if d is not None:
-                lag = d
+        lag = next((d for d in (ext.load_cell_lag(ctx) for ext in self.extensions) if d is not None), None)
         idx = obs.lc_index
         weights = self.chute_weight[idx][None, :, None]
         baseline = seen[:, idx, :] / s[:, None, :] + obs.lc_weight_term[None] * (1.0 - 1.0 / s[:, None, :])
@@ -427,16 +423,19 @@ class TestModel:
         # The load cell at t shows the riser at t − δ; the reduction divided by the measured q̄(t). Added to the
         # baseline as the change of the riser force over the lag (δ = 0: the baseline exactly), with q̄ and G
         # smoothed in it: the difference of two noisy samples is noise (±5 m² on a Main's 500 m²).
-        t_lag = t[None, :] - lag[:, None]                     # (B, N)
-        cds_lag, _ = self.drag_areas(ctx.stage, t_lag[:, None, :])
-        for ext in self.extensions:
-            cds_lag = ext.reshape_drag_area(ctx, cds_lag, t_lag[:, None, :])
-        extra = self._apparent(ctx, t_lag[:, None, :])
-        cds_lag = cds_lag if extra is None else cds_lag + extra
-        q_lag, g_lag = obs.smooth_qbar_at(t_lag)[:, None, :], obs.smooth_g_at(t_lag)[:, None, :]
-        q_now, g_now = obs.smooth_qbar_at(t)[None, None, :], obs.smooth_g_at(t)[None, None, :]
-        force_lag = q_lag * cds_lag[:, idx, :] - weights * g_lag
-        force_now = q_now * seen[:, idx, :] - weights * g_now
+        # A response spread over several delays (a first-order cell) is their forces' weighted sum.
+        delays, node_weights = lag if isinstance(lag, tuple) else (lag[:, None], np.ones(1))
+        force_lag = 0.0
+        for k, node_weight in enumerate(node_weights):
+            t_lag = t[None, :] - delays[:, k, None]                     # (B, N)
+            cds_lag, _ = self.drag_areas(ctx.stage, t_lag[:, None, :])
+            for ext in self.extensions:
+                cds_lag = ext.reshape_drag_area(ctx, cds_lag, t_lag[:, None, :])
+            extra = self._apparent(ctx, t_lag[:, None, :])
+            cds_lag = cds_lag if extra is None else cds_lag + extra
+            q_lag, g_lag = obs.smooth_qbar_at(t_lag)[:, None, :], obs.smooth_g_at(t_lag)[:, None, :]
+            force_lag = force_lag + node_weight * (q_lag * cds_lag[:, idx, :] - weights * g_lag)
+        force_now = obs.smooth_qbar_at(t)[None, None, :] * seen[:, idx, :] - weights * obs.smooth_g_at(t)[None, None, :]
         return baseline + (force_lag - force_now) / (s[:, None, :] * obs.qbar_at(t)[None, None, :])
 
     # -- likelihood -----------------------------------------------------------

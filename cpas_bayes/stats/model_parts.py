@@ -89,7 +89,8 @@ class Extension:
         return None
 
     def load_cell_lag(self, ctx):
-        """Load-cell delay behind the IMU time base, s, (B,) or None."""
+        """Load-cell delays behind the IMU time base, s: (B,), or ((B, K) delays, (K,) weights summing to 1)
+        for a response spread over several delays; or None."""
         return None
 
     def friction_factor(self, ctx, t):

@@ -27,8 +27,13 @@ baseline is never copied. The physics is the same as the simulator's
     mean factor. Prior: Δs ~ N(0, 0.08) (the seed's Drogues moved by 0.05).
 
 ``sensor_lag`` — load cells behind the IMU time base (load cells only)
-    The load cell at t shows the riser at t − δ. Prior: δ ~ N(0, 0.1 s)
-    truncated to [−0.2, 0.3] s.
+    The load cell at t shows the riser force delayed by L − r and seen through
+    a first-order response of time constant r: ∫₀^∞ F(t − (L − r) − r·s)·e^(−s) ds
+    (four Gauss–Laguerre nodes), whose mean delay is L; r = 0 is a pure delay.
+    A real cell and its conditioning filter respond in the first-order way;
+    a pure delay is a clock offset. Priors: L ~ N(0, 0.1 s) truncated to
+    [−0.2, 0.3] s; r ~ half-normal, scale 0.05 s, below 0.3 s (r = 0 is a
+    physical limit, not an edge of the prior).
 
 ``canopy_breathing`` — damped oscillation of each canopy after its peak (both)
     CDS_i(t)·[1 + A·exp(−ζωτ)·sin(ω·sqrt(1−ζ²)·τ)], τ the time since the
@@ -131,19 +136,29 @@ class FrictionDrift(Extension):
         return ctx.values["load_scale"][:, None] + change * (frac[None, :] - 0.5)
 
 
+# Gauss–Laguerre nodes and weights of ∫₀^∞ f(s)·e^(−s) ds: a first-order sensor's response as a few delays
+RESPONSE_NODES, RESPONSE_WEIGHTS = np.polynomial.laguerre.laggauss(4)
+
+
 class SensorLag(Extension):
     name = "sensor_lag"
     needs_load_cells = True
     practical_floor = ("lag", 0.010)   # one 100 Hz sample: clean bundles of two simulators fit 2–4 ms
+    physical_lower_limits = ("lag_response",)   # a pure delay, not an edge
 
     def parameters(self, model):
-        return [Parameter("lag", TruncNormal(0.0, 0.1, -0.2, 0.3), "s", self.name)]
+        return [Parameter("lag", TruncNormal(0.0, 0.1, -0.2, 0.3), "s", self.name),
+                Parameter("lag_response", TruncNormal(0.0, 0.05, 0.0, 0.3), "s", self.name)]
 
     def start_points(self, model):
-        return [{"lag": 0.0}, {"lag": 0.05}]
+        return [{"lag": 0.0, "lag_response": 0.002}, {"lag": 0.05, "lag_response": 0.01}]
 
     def load_cell_lag(self, ctx):
-        return ctx.values["lag"]
+        """The delays (B, K) and weights (K,) of a pure delay δ = L − r followed by a first-order response of
+        time constant r: y(t) = ∫₀^∞ x(t − δ − r·s)·e^(−s) ds, whose mean delay is the lag L (so at r = 0 it
+        is the delay L)."""
+        lag, response = ctx.values["lag"][:, None], ctx.values["lag_response"][:, None]
+        return lag - response + response * RESPONSE_NODES[None, :], RESPONSE_WEIGHTS
 
 
 BREATHING_FREQUENCY = {"drogue": 1.2, "pilot": 1.5, "fbcp": 1.5, "main": 0.35}  # Hz, prior medians
