@@ -92,6 +92,19 @@ def test_each_extension_explains_its_own_effect_and_no_other(scenario, effect):
     assert all(gains[effect] > 20 * max(abs(g), 1.0) for n, g in gains.items() if n != effect), gains
 
 
+def _gains_at_forms(test, truth_doc, term, forms):
+    """{label: log-likelihood gain over the baseline} at the simulator's truth, ``term``'s parameters at each
+    of ``forms`` ({label: {name: value}}; the term's others neutral)."""
+    reduction = reduce_test(test)
+    truth = truth_parameter_values(test, truth_doc)
+    base = prepare_model(test, reduction)
+    baseline = base.log_likelihood(np.array([truth.get(n, 1.0) for n in base.names])[None])[0]
+    model = prepare_model(test, reduction, extensions=[make_extension(term)])
+    return {label: model.log_likelihood(np.array([{**truth, **NEUTRAL, **form}.get(n, 1.0)
+                                                  for n in model.names])[None])[0] - baseline
+            for label, form in forms.items()}
+
+
 @pytest.mark.parametrize("scenario", ["drogue", "main"])
 def test_the_added_mass_term_fits_a_lagged_mass_of_another_exponent(scenario):
     """On a simulated added mass of another form (exponent p, lag τ_m, Eq. A1' and A5), the term at the
@@ -99,16 +112,9 @@ def test_the_added_mass_term_fits_a_lagged_mass_of_another_exponent(scenario):
     test, truth_doc = synthesize(scenario, "added_mass_form", 11)
     params = truth_doc["effect_params"]
     assert params["mass_lag"] > 0.04 and abs(params["exponent"] - 1.5) > 0.02, params
-    reduction = reduce_test(test)
-    truth = truth_parameter_values(test, truth_doc)
-    base = prepare_model(test, reduction)
-    baseline = base.log_likelihood(np.array([truth.get(n, 1.0) for n in base.names])[None])[0]
-    model = prepare_model(test, reduction, extensions=[make_extension("added_mass")])
-    gains = {}
-    for label, form in (("true form", {"mass_exponent": params["exponent"], "mass_lag": params["mass_lag"]}),
-                        ("Eq. A1", {"mass_exponent": 1.5, "mass_lag": 0.0})):
-        values = {**truth, **NEUTRAL, "k_a": params["k_a"], **form}
-        gains[label] = model.log_likelihood(np.array([values.get(n, 1.0) for n in model.names])[None])[0] - baseline
+    gains = _gains_at_forms(test, truth_doc, "added_mass", {
+        "true form": {"k_a": params["k_a"], "mass_exponent": params["exponent"], "mass_lag": params["mass_lag"]},
+        "Eq. A1": {"k_a": params["k_a"], "mass_exponent": 1.5, "mass_lag": 0.0}})
     assert gains["true form"] > 1000, gains
     assert gains["true form"] > gains["Eq. A1"] + 3000, gains
 
@@ -120,15 +126,8 @@ def test_the_sensor_lag_fits_a_first_order_cell_as_well_as_a_delay(scenario, mar
     on the Drogue's 0.1–0.3 s fills (measured +707 in log-likelihood, +447 over the best pure delay, 0.04 s);
     on a Main's slow fills a delay is nearly the same (+14), so there the form does not matter."""
     test, truth_doc = synthesize(scenario, "sensor_lag_form", 7, magnitude=0.05)
-    reduction = reduce_test(test)
-    truth = truth_parameter_values(test, truth_doc)
-    base = prepare_model(test, reduction)
-    baseline = base.log_likelihood(np.array([truth.get(n, 1.0) for n in base.names])[None])[0]
-    model = prepare_model(test, reduction, extensions=[make_extension("sensor_lag")])
-    gains = {}
-    for label, response in (("first-order", 0.05), ("pure delay", 0.0)):
-        values = {**truth, **NEUTRAL, "lag": 0.05, "lag_response": response}
-        gains[label] = model.log_likelihood(np.array([values.get(n, 1.0) for n in model.names])[None])[0] - baseline
+    gains = _gains_at_forms(test, truth_doc, "sensor_lag", {"first-order": {"lag": 0.05, "lag_response": 0.05},
+                                                            "pure delay": {"lag": 0.05, "lag_response": 0.0}})
     assert gains["first-order"] > 1000, gains
     assert gains["first-order"] > gains["pure delay"] + margin, gains
 
