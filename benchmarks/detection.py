@@ -21,8 +21,9 @@ the end (and written next to the CSV as ``.md``) is the README's:
 * form — a catalogued cause simulated with a form its term was not
   written for (``synth_effects.FORM_VARIANTS``: added mass of another
   exponent of drag area and lagged, ``added_mass_form``; a friction factor
-  settling exponentially, not a ramp, ``friction_drift_form``); right = the
-  cause named.
+  settling exponentially, not a ramp, ``friction_drift_form``; load cells
+  through a first-order response, not a delay, ``sensor_lag_form``); right =
+  the cause named.
 
 Seeds: case k of a study uses seed 10_000·(study index) + k, so every study
 draws its own truths and noise.

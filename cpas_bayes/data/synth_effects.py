@@ -53,8 +53,8 @@ hundreds of samples of the deceleration; clipping 15 %, G ≈ 11–14σ on
 30–90 samples; ringing 15 %, ≈ 6–10σ peaks at each disreef; tare shift 5 %,
 ≈ 6–10σ on every sample after it (≥ 500 lbf against σ ≈ 60–150 lbf).
 
-Form variants (causes "added_mass", "friction_drift")
------------------------------------------------------
+Form variants (causes "added_mass", "friction_drift", "sensor_lag")
+-------------------------------------------------------------------
 =================== ============================================== ========== ============ ==============
 effect              what                                           magnitude  drawn        form, drawn
 =================== ============================================== ========== ============ ==============
@@ -72,7 +72,7 @@ sensor_lag_form     load cells seen through a first-order response τ, s       0
 
 With p = 1.5 and τ_m = 0 the first is ``added_mass`` exactly; the
 diagnosis fits p and τ_m. The second is no ramp at all, and the
-diagnosis' ``friction_drift`` is a ramp (with fitted ends). The third is
+diagnosis' ``friction_drift`` is a ramp over the whole record. The third is
 no delay: the diagnosis' ``sensor_lag`` fits a delay and a first-order
 response together. The causes are catalogued, these forms are not.
 
@@ -80,10 +80,11 @@ Pairs
 -----
 ``"a+b"`` simulates two different effects at once, each with its own
 magnitude (``magnitude`` None, or a pair of values each None or a number).
-"none" does not pair, nor do two forms of one cause (added mass, friction drift, sensor lag). Dynamic effects (added
-mass in either form, breathing) enter the dynamics together; on a load cell
-the reading is F/(s·cos θ), then ringing, then a tare shift, then the
-sensor_lag delay.
+"none" does not pair, nor do two forms of one cause (added mass, friction
+drift, sensor lag). Dynamic effects (added mass in either form, breathing)
+enter the dynamics together; on a load cell the reading is F/(s·cos θ), then
+ringing, then a tare shift, then the sensor_lag delay (or the
+sensor_lag_form response).
 
 Truth document keys (truth.json, besides the examples' layout)
 --------------------------------------------------------------

@@ -424,7 +424,7 @@ class TestModel:
         # baseline as the change of the riser force over the lag (δ = 0: the baseline exactly), with q̄ and G
         # smoothed in it: the difference of two noisy samples is noise (±5 m² on a Main's 500 m²).
         # A response spread over several delays (a first-order cell) is their forces' weighted sum.
-        delays, node_weights = lag if isinstance(lag, tuple) else (lag[:, None], np.ones(1))
+        delays, node_weights = lag
         force_lag = 0.0
         for k, node_weight in enumerate(node_weights):
             t_lag = t[None, :] - delays[:, k, None]                     # (B, N)

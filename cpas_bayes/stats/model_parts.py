@@ -89,8 +89,8 @@ class Extension:
         return None
 
     def load_cell_lag(self, ctx):
-        """Load-cell delays behind the IMU time base, s: (B,), or ((B, K) delays, (K,) weights summing to 1)
-        for a response spread over several delays; or None."""
+        """Load-cell delays behind the IMU time base: ((B, K) delays in s, (K,) weights summing to 1), K = 1 for
+        a pure delay; or None."""
         return None
 
     def friction_factor(self, ctx, t):
