@@ -220,7 +220,7 @@ def test_a_negligible_fitted_size_names_nothing():
 def test_a_term_at_the_edge_of_its_prior_is_a_stand_in():
     """Breathing railed at its amplitude bound (0.25) and its damping bound: a stand-in, never a cause."""
     rng = np.random.default_rng(1)
-    post = {"breathing_amplitude": 0.25 - 0.002 * rng.random(400), "breathing_damping": 0.6 - 0.004 * rng.random(400)}
+    post = {"breathing_amplitude": 0.25 - 0.002 * rng.random(400), "breathing_damping": 0.4 - 0.004 * rng.random(400)}
     ref, cands = _field({"canopy_breathing": 300.0}, canopy_breathing={"posterior": post})
     checks, (chosen, _, _) = _judge(ref, cands)
     assert chosen is None

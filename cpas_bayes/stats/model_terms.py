@@ -174,6 +174,9 @@ def breathing_frequency_median(parachute):
     return float(np.clip(BREATHING_FREQUENCY_TIMES_DIAMETER / parachute.diameter, 0.1, 3.0))
 
 
+BREATHING_DAMPING_MAX = 0.4
+
+
 class CanopyBreathing(Extension):
     name = "canopy_breathing"
     practical_floor = ("breathing_amplitude", 0.01)   # a 1 % ring of the drag area
@@ -186,7 +189,9 @@ class CanopyBreathing(Extension):
         median = float(np.exp(np.mean([math.log(f) for f in kinds.values()])))
         return [Parameter("breathing_amplitude", Uniform(0.0, 0.25), "", self.name),
                 Parameter("breathing_frequency", LogNormal(median, 0.6, 0.05, 5.0), "Hz", self.name),
-                Parameter("breathing_damping", Uniform(0.01, 0.6), "", self.name)]
+                # A ring: at ζ = 0.4 the second peak is 6 % of the first (exp(−2πζ/√(1−ζ²))); a more damped
+                # "breathing" is one bump, which a stand-in for an added mass or a drift fitted at ζ 0.55
+                Parameter("breathing_damping", Uniform(0.01, BREATHING_DAMPING_MAX), "", self.name)]
 
     def initial_values(self, model):
         return {"breathing_frequency": self.frequency_guess} if self.frequency_guess else {}
