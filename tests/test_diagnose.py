@@ -228,6 +228,18 @@ def test_a_term_at_the_edge_of_its_prior_is_a_stand_in():
     assert any("stand-in" in r for r in checks[0].reasons)
 
 
+def test_a_breathing_that_does_not_ring_is_a_stand_in():
+    """A single damped bump (damping ratio pressed on its ceiling, amplitude well inside): a stand-in."""
+    rng = np.random.default_rng(3)
+    ceiling = next(p.prior for p in _term_parameters("canopy_breathing") if p.name == "breathing_damping").support[1]
+    assert ceiling == pytest.approx(0.4)   # the second peak of a ring at the ceiling is 6 % of the first
+    post = {"breathing_amplitude": 0.15 + 0.01 * rng.standard_normal(400),
+            "breathing_damping": ceiling - 0.004 * rng.random(400)}
+    ref, cands = _field({"canopy_breathing": 300.0}, canopy_breathing={"posterior": post})
+    checks, (chosen, _, _) = _judge(ref, cands)
+    assert chosen is None and [e.split()[0] for e in checks[0].at_edge] == ["breathing_damping"]
+
+
 def test_a_size_that_repeats_its_prior_is_not_evidence():
     prior = next(p.prior for p in _term_parameters("friction_drift") if p.name == "load_scale_change")
     draws = prior.sample(np.random.default_rng(2), 400)

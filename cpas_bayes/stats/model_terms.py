@@ -174,6 +174,8 @@ def breathing_frequency_median(parachute):
     return float(np.clip(BREATHING_FREQUENCY_TIMES_DIAMETER / parachute.diameter, 0.1, 3.0))
 
 
+# The breathing's damping ratio at most: a ring, whose successive peaks fall by exp(−2πζ/√(1−ζ²)), 6 % at 0.4.
+# A more damped "breathing" is one bump: a stand-in for an added mass beside a drift was fitted at ζ 0.55.
 BREATHING_DAMPING_MAX = 0.4
 
 
@@ -189,8 +191,6 @@ class CanopyBreathing(Extension):
         median = float(np.exp(np.mean([math.log(f) for f in kinds.values()])))
         return [Parameter("breathing_amplitude", Uniform(0.0, 0.25), "", self.name),
                 Parameter("breathing_frequency", LogNormal(median, 0.6, 0.05, 5.0), "Hz", self.name),
-                # A ring: at ζ = 0.4 the second peak is 6 % of the first (exp(−2πζ/√(1−ζ²))); a more damped
-                # "breathing" is one bump, which a stand-in for an added mass or a drift fitted at ζ 0.55
                 Parameter("breathing_damping", Uniform(0.01, BREATHING_DAMPING_MAX), "", self.name)]
 
     def initial_values(self, model):
