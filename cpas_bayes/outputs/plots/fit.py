@@ -26,6 +26,7 @@ import textwrap
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Patch
+from matplotlib.ticker import MaxNLocator
 
 from cpas_bayes.core.inputs import inside
 from cpas_bayes.core.ownership import claim_folder
@@ -44,6 +45,7 @@ BAND_DRAWS = 400
 CORNER_FIELDS = ("start", "n_p", "expopen", "ck", "tk", "eps")
 CORNER_UNITS = {"start": "s", "tk": "s"}
 TRACE_PARAMETERS = 6
+CORNER_TICKS = 3   # MaxNLocator's bins: 3-4 ticks on a 2-inch panel
 _SI_QUANTITY = {"m²": "area", "N": "force"}   # parameter unit -> quantity converted to the bundle's units
 DPI = 110
 
@@ -223,8 +225,8 @@ def plot_loads(fit, pred, rng):
         cells = u.from_si((s_bar * (qbar * obs.lc - weights * g)).sum(axis=0), "force")
     timing = stage_timing_medians(fit)
     K = model.n_stages
-    fig = plt.figure(figsize=(max(10, 4.2 * K), 8), constrained_layout=True)
-    grid = fig.add_gridspec(2, K)
+    fig = plt.figure(figsize=(max(10, 4.2 * K), 8))
+    grid = fixed_grid(fig, 2, K, left=0.85, right=0.2, top=0.75, bottom=0.55, wspace=0.9, hspace=0.85)
     top = fig.add_subplot(grid[0, :])
     zooms = [fig.add_subplot(grid[1, k]) for k in range(K)]
     for j, ax in enumerate([top] + zooms):
@@ -278,6 +280,9 @@ def plot_corner(values, names, labels, title, max_points=2500, rng=None):
     for r in range(d):
         for c in range(r + 1):
             ax = fig.add_subplot(grid[r, c])
+            # at most four ticks an axis: a tick and its label are a third of a corner's drawing time
+            ax.xaxis.set_major_locator(MaxNLocator(CORNER_TICKS))
+            ax.yaxis.set_major_locator(MaxNLocator(CORNER_TICKS))
             x = values[:, c]
             if r == c:
                 q05, q50, q95 = np.quantile(x, (0.05, 0.5, 0.95))
@@ -393,8 +398,10 @@ def plot_ppc(result):
     table = result.table
     stats = list(STATISTICS)
     rows = table[["parachute", "stage", "stage_label"]].drop_duplicates().reset_index(drop=True)
-    fig, axes = plt.subplots(1, len(stats), figsize=(3.3 * len(stats), 0.42 * len(rows) + 2.2),
-                             constrained_layout=True, sharey=True, squeeze=False)
+    fig = plt.figure(figsize=(3.3 * len(stats) + 1.0, 0.42 * len(rows) + 2.2))
+    # fixed margins in inches: room for the stage labels on the left and each panel's p-values on its right
+    axes = fixed_grid(fig, 1, len(stats), left=1.75, right=0.6, top=0.75, bottom=0.9, wspace=0.75,
+                      hspace=0.0).subplots(sharey=True, squeeze=False)
     y = np.arange(len(rows))[::-1]
     for c, name in enumerate(stats):
         ax = axes[0, c]
@@ -432,8 +439,7 @@ def plot_ppc(result):
                plt.Line2D([], [], color=_MODEL, lw=1.2, label="replicated 90 %"),
                plt.Line2D([], [], marker="o", ls="", color="k", label="observed"),
                plt.Line2D([], [], marker="o", ls="", color="crimson", label="observed, p < 0.01 or > 0.99")]
-    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, -0.01))
-    fig.get_layout_engine().set(rect=(0, 0.05, 1, 0.95))
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, bbox_to_anchor=(0.5, 0.0))
     fig.suptitle("Posterior predictive check: each observed statistic (dot) should sit inside the replicated "
                  "range (bars); p = P(T_rep ≥ T_obs)", fontsize=10)
     return fig
@@ -441,7 +447,9 @@ def plot_ppc(result):
 
 def plot_loo_pit(result):
     """LOO-PIT ECDF difference per channel with the DKW 95 % band, and the PIT histograms."""
-    fig, (ax_e, ax_h) = plt.subplots(1, 2, figsize=(12, 4.6), constrained_layout=True)
+    fig = plt.figure(figsize=(12, 4.6))
+    ax_e, ax_h = fixed_grid(fig, 1, 2, left=0.85, right=0.2, top=0.7, bottom=0.55, wspace=0.85,
+                            hspace=0.0).subplots(squeeze=False)[0]
     grid = np.linspace(0, 1, 201)
     band = result.table["dkw_band"].max()
     ax_e.fill_between(grid, -band, band, color="0.85", label="95 % simultaneous band (DKW)")
@@ -455,10 +463,10 @@ def plot_loo_pit(result):
     ax_e.axhline(0.0, color="k", lw=0.6)
     ax_e.set_xlabel("LOO-PIT value u [-]")
     ax_e.set_ylabel("ECDF(u) − u [-]")
-    ax_e.set_title("ECDF difference: should stay inside the grey band")
+    ax_e.set_title("ECDF difference: should stay inside the grey band", fontsize=10)
     ax_h.set_xlabel("LOO-PIT value u [-]")
     ax_h.set_ylabel("density [-]")
-    ax_h.set_title("histogram: ∪-shape = predictive too narrow, ∩-shape = too wide")
+    ax_h.set_title("histogram: ∪-shape = predictive too narrow, ∩-shape = too wide", fontsize=10)
     for ax in (ax_e, ax_h):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
@@ -485,7 +493,8 @@ def finish_residual_figure(fig, axes, handles, bottom, title):
     """Common legend (series + phases) under the panels, time axis label and title."""
     phase_handles = [Patch(color=c, label=f"phase: {name.replace('_', ' ')}") for name, c in _PHASE_COLORS.items()]
     fig.legend(handles=handles + phase_handles, loc="lower center", ncol=4, fontsize=8)
-    fig.get_layout_engine().set(rect=(0, bottom, 1, 1 - bottom))
+    if fig.get_layout_engine() is not None:   # a fixed grid (fit's residuals) left the legend its room already
+        fig.get_layout_engine().set(rect=(0, bottom, 1, 1 - bottom))
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle(title, fontsize=10)
 
@@ -493,8 +502,9 @@ def finish_residual_figure(fig, axes, handles, bottom, title):
 def plot_residuals(report):
     """Standardised residuals against time per channel, phases shaded, high Pareto-k bins marked."""
     channels = list(report.residuals)
-    fig, axes = plt.subplots(len(channels), 1, figsize=(12, 2.6 * len(channels) + 1), constrained_layout=True,
-                             sharex=True, squeeze=False)
+    fig = plt.figure(figsize=(12, 2.6 * len(channels) + 1.4))
+    axes = fixed_grid(fig, len(channels), 1, left=0.85, right=0.2, top=0.7, bottom=1.15, wspace=0.0,
+                      hspace=0.45).subplots(sharex=True, squeeze=False)
     t = report.time
     for r, channel in enumerate(channels):
         ax = axes[r, 0]
