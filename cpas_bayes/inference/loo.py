@@ -48,15 +48,36 @@ def smoothed_log_weights(log_lik: xr.DataArray, r_eff):
 
 
 def psis_loo(tree, var_name="total", r_eff=None):
-    """``arviz.loo`` of ``var_name`` with pointwise values, from weights smoothed here."""
-    import arviz_stats as azs
+    """``arviz.loo`` of ``var_name`` with pointwise values, from weights smoothed here.
+
+    The sums are ArviZ's own (elpd_i = log Σ_s w_is·p(y_i|θ_s) with the smoothed, normalised weights;
+    lppd_i = log mean_s p(y_i|θ_s); p_loo_i = lppd_i − elpd_i; se = √(n·var(elpd_i))), taken over every
+    observation at once: ``arviz.loo`` given the weights still loops over observations in Python (a third
+    of a second on a fit's 467 bins). Returned as the ``ELPDDataLOO`` it would return.
+    """
+    from arviz_stats.utils import ELPDDataLOO
+    from scipy.special import logsumexp
 
     r_eff = relative_efficiency(tree) if r_eff is None else r_eff
-    weights, k = smoothed_log_weights(tree["log_likelihood"][var_name], r_eff)
-    with warnings.catch_warnings():
-        # High k̂ is reported by the callers, bin by bin; ArviZ's generic warning adds nothing.
-        warnings.filterwarnings("ignore", message="Estimated shape parameter of Pareto", category=UserWarning)
-        return azs.loo(tree, var_name=var_name, pointwise=True, reff=r_eff, log_weights=weights, pareto_k=k)
+    log_lik = tree["log_likelihood"][var_name]
+    weights, k = smoothed_log_weights(log_lik, r_eff)
+    obs_dims = [d for d in log_lik.dims if d not in SAMPLE_DIMS]
+    ll = log_lik.transpose(*obs_dims, *SAMPLE_DIMS)
+    values = np.asarray(ll.values, float)
+    lw = np.asarray(weights.transpose(*obs_dims, *SAMPLE_DIMS).values, float)
+    n_samples = values.shape[-2] * values.shape[-1]
+    elpd_i = logsumexp(lw + values, axis=(-2, -1))
+    p_loo_i = logsumexp(values, axis=(-2, -1)) - np.log(n_samples) - elpd_i
+    flat = elpd_i.ravel()
+    n = flat.size
+    pointwise = {d: ll.coords[d] for d in obs_dims if d in ll.coords}
+    good_k = min(1 - 1 / np.log10(n_samples), 0.7) if n_samples > 1 else 0.7
+    return ELPDDataLOO(
+        elpd=float(flat.sum()), se=float(np.sqrt(n * np.var(flat, ddof=1))) if n > 1 else 0.0,
+        p=float(p_loo_i.sum()), n_samples=n_samples, n_data_points=n, scale="log",
+        warning=bool(np.any(np.asarray(k.values) > good_k)), good_k=good_k,
+        elpd_i=xr.DataArray(elpd_i, dims=obs_dims, coords=pointwise), pareto_k=k, approx_posterior=False,
+        log_weights=weights)
 
 
 def loo_pit(tree, var_names, r_eff=None):
