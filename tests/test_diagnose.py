@@ -249,6 +249,21 @@ def test_a_size_that_repeats_its_prior_is_not_evidence():
     assert chosen is None
 
 
+def test_a_longer_fit_starts_from_the_best_draw_its_ensembles_found_then_the_map():
+    # two ensembles of 3 walkers × 4 draws in 2-D; the second ensemble holds the highest log posterior, far
+    # above the MAP the first search found (a rugged posterior), and a non-finite value is never chosen
+    rng = np.random.default_rng(0)
+    draws = [rng.normal(size=(3, 4, 2)) for _ in range(2)]
+    lps = [np.full((3, 4), 140.0), np.full((3, 4), 200.0)]
+    lps[1][2, 1] = 260.0
+    lps[0][0, 0] = np.nan
+    fit = SimpleNamespace(sampling=SimpleNamespace(theta_map=np.array([9.0, 9.0]), runs=[
+        SimpleNamespace(draws=d, log_prob=lp) for d, lp in zip(draws, lps)]))
+    first, second = cf.restart_points(fit)
+    np.testing.assert_array_equal(first, draws[1][2, 1])
+    np.testing.assert_array_equal(second, [9.0, 9.0])
+
+
 def test_two_terms_that_explain_alike_are_not_clearly_apart():
     ref, cands = _field({"added_mass": 40.0, "canopy_breathing": 38.0}, jitter=0.2)
     checks, (chosen, clear, reasons) = _judge(ref, cands)

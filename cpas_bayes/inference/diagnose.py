@@ -47,7 +47,7 @@ from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_PARTS, CandidateFit,
                                                  DiagnoseOptions, baseline_from_fit, best_screen, fit_candidate,
                                                  fit_model_form, for_tasks, model_label, polish_baseline_map,
-                                                 screen_candidate, verdict_names)
+                                                 restart_points, screen_candidate, verdict_names)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, cannot_rival, check_term, choose_term, compare_table,
                                                  fit_converged, paired_difference, passes, structured_phases,
@@ -475,7 +475,7 @@ def _fit_and_judge(terms, test, reduction, options, reference, light_reference, 
         say(f"{test.name}: {', '.join(retry)} gained but did not converge: a fit up to {RETRY_STEPS_FACTOR}× "
             "longer, until the parameters the verdict reads are on target")
         jobs = [(labels[t], test, reduction, _long_options(options, verdict_names(fitted[t].fit.model, t)),
-                 light_reference, light_baseline, [fitted[t].fit.sampling.theta_map]) for t in retry]
+                 light_reference, light_baseline, restart_points(fitted[t].fit)) for t in retry]
         fitted.update(zip(retry, _run_fits(executor, jobs, say, test.name)))
         judged.update({t: judge(t) for t in retry})
 

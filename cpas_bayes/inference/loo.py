@@ -1,13 +1,14 @@
 """PSIS-LOO and LOO-PIT of a fit's DataTree, smoothed by :mod:`cpas_bayes.stats.psis` in one pass.
 
-``arviz.loo`` and ``arviz.loo_pit`` accept precomputed smoothed log weights
-and Pareto k̂; given them they return their usual objects (``ELPDDataLOO``,
-a Dataset of PIT values), so every reader of these results — the diagnosis
-rule, ``arviz.compare``, a user's own tools — is unchanged. The weights are
-those ArviZ would compute itself (the same tail rule, the same relative
-efficiency r_eff: the mean over posterior variables of the bulk ESS of the
-mean per draw), to round-off, at a fraction of the time: ArviZ fits the tail
-of one observation at a time in Python.
+The results are ArviZ's usual objects (``ELPDDataLOO``; ``arviz.loo_pit``'s
+Dataset of PIT values, which accepts precomputed smoothed log weights and
+Pareto k̂), so every reader of them — the diagnosis rule, ``arviz.compare``,
+a user's own tools — is unchanged. The weights are those ArviZ would compute
+itself (the same tail rule, the same relative efficiency r_eff: the mean over
+posterior variables of the bulk ESS of the mean per draw), to round-off, at a
+fraction of the time: ArviZ fits the tail of one observation at a time in
+Python, and given the weights still sums each observation in a Python loop,
+where :func:`psis_loo` sums them all at once.
 """
 
 from __future__ import annotations
