@@ -26,7 +26,7 @@ from cpas_bayes.inference.candidate_fits import extension_parameters
 from cpas_bayes.inference.diagnose import Diagnosis
 from cpas_bayes.outputs.figures import save_figure
 from cpas_bayes.outputs.plots import diagnose as figs
-from cpas_bayes.outputs.plots.fit import plot_loo_pit, plot_ppc, plot_residuals
+from cpas_bayes.outputs.plots.checks import plot_loo_pit, plot_ppc, plot_residuals
 from cpas_bayes.stats.model_terms import EXTENSIONS
 
 DIAGNOSIS_NAME = "diagnosis.json"

@@ -14,6 +14,10 @@ from cpas_bayes.core.ownership import claim_folder
 # ±3 %, in two thirds of the time (about 0.2 s over a fit's ten figures)
 PNG_COMPRESS_LEVEL = 3
 
+# the colours every figure of a fit gives the model's prediction and the measured data
+MODEL_COLOR = "#d95f02"
+DATA_COLOR = "0.25"
+
 
 def save_figure(fig, target, **kwargs):
     """Save a matplotlib figure atomically (format from the target's suffix)."""

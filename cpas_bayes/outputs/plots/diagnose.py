@@ -19,7 +19,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
-from cpas_bayes.outputs.plots.fit import finish_residual_figure, shade_phases
+from cpas_bayes.outputs.plots.checks import finish_residual_figure, shade_phases
 
 _BASE = "0.45"
 _EXT = "#d95f02"
