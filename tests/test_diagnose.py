@@ -126,6 +126,31 @@ def test_a_term_that_explains_a_significant_discrepancy_is_named_without_beating
         assert any("as well as the generic term does" in r for r in check.reasons)
 
 
+@pytest.mark.parametrize("gain,share_alone,withdrawn", [
+    (-6.0, 0.03, True),     # named for the discrepancy's shape, and alone explains almost none of its gain
+    (-6.0, 0.8, False),     # alone it explains most of it: the physics, as the clause assumed
+    (60.0, 0.03, False),    # named by its own gain: the share only adds "unexplained" beside it
+])
+def test_a_term_named_only_for_the_discrepancys_shape_that_explains_little_alone_is_withdrawn(gain, share_alone,
+                                                                                                withdrawn):
+    ref, cands = _field({"canopy_breathing": gain}, jitter=0.9 if gain < 0 else 0.01)
+    check = rule.check_term("canopy_breathing", cands["canopy_breathing"], ref, OPTIONS, share=0.97, misfit=True)
+    assert check.gains and check.explains_only == (gain < 0)
+    rounds = [{"chosen": "canopy_breathing", "checks": [check]}, {"chosen": None, "checks": []}]
+    out = rule.stand_ins_by_shape(["canopy_breathing"], rounds, share_alone, OPTIONS)
+    assert out == (["canopy_breathing"] if withdrawn else [])
+
+
+def test_a_shape_only_name_beside_a_term_named_by_its_gain_is_kept():
+    # the rule withdraws only when every named term is such a stand-in: the named fit is then the baseline's
+    ref, cands = _field({"sensor_lag": -6.0, "added_mass": 60.0}, jitter=0.9)
+    lag = rule.check_term("sensor_lag", cands["sensor_lag"], ref, OPTIONS, share=0.97, misfit=True)
+    mass = rule.check_term("added_mass", cands["added_mass"], ref, OPTIONS, share=0.2, misfit=True)
+    rounds = [{"chosen": "added_mass", "checks": [mass]}, {"chosen": "sensor_lag", "checks": [lag]}]
+    assert lag.explains_only and not mass.explains_only
+    assert rule.stand_ins_by_shape(["added_mass", "sensor_lag"], rounds, 0.1, OPTIONS) == []
+
+
 @pytest.mark.parametrize("shares,clear", [((1.0, 0.05), True), ((1.0, 0.5), False), ((0.8, 0.05), False),
                                           ((None, None), False)])
 def test_a_term_that_takes_over_the_whole_discrepancy_leads_one_that_hardly_touches_it(shares, clear):

@@ -51,7 +51,7 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_P
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, cannot_rival, check_term, choose_term, compare_table,
                                                  fit_converged, paired_difference, passes, structured_phases,
-                                                 unexplained_share, versus_baseline)
+                                                 stand_ins_by_shape, unexplained_share, versus_baseline)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals
@@ -527,8 +527,7 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     if named:
         label = model_label(named)
         named_fit = _run_fits(executor, [(label, test, reduction, options, for_tasks(reference), light_baseline,
-                                          None)], say,
-                              test.name)[0]
+                                          None)], say, test.name)[0]
         fits[label] = named_fit
     final = named_fit or baseline
 
@@ -538,10 +537,14 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     total, total_se = paired_difference(discrepancy, baseline)
     remaining, remaining_se = paired_difference(reference, final)
     share = unexplained_share(total, remaining) if named else 0.0
+    withdrawn = stand_ins_by_shape(named, rounds, share, options)
+    if withdrawn:   # stand-ins for the discrepancy's shape: the verdict is as if nothing had been named
+        named, final, reference, named_fit = [], baseline, discrepancy, None
+        remaining, remaining_se = total, total_se
     left = passes(remaining, remaining_se, options)
-    reasons = []
-    for r in rounds:
-        reasons += r["reasons"]
+    reasons = [x for r in rounds for x in r["reasons"]] + ([
+        f"{', '.join(withdrawn)} withdrawn: named for taking the discrepancy's shape over, alone it explains "
+        f"{100 * share:.0f} % of the discrepancy's gain (a stand-in)"] if withdrawn else [])
     unexplained = None
     is_unexplained = (left and (not named or share < options.min_share)) or (not named and not adequate)
     where, shape = discrepancy_where(reference, final.fit)
@@ -584,10 +587,8 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
         if big and name.split("+")[0] in named + [DISCREPANCY]:
             warnings.append(f"adding {name} moved {', '.join(big[:4])} by more than {options.moved_sd:g} baseline "
                             "sd: those parameters trade off with it")
-    for r in rounds:
-        for c in r["checks"]:
-            if not c.converged:
-                warnings.append(f"the fit of {c.model} did not converge: {c.term} could not be named from it")
+    warnings += [f"the fit of {c.model} did not converge: {c.term} could not be named from it"
+                 for r in rounds for c in r["checks"] if not c.converged]
     comparison = compare_table(baseline, fits)
     return Diagnosis(test=test.name, baseline=baseline, candidates=fits, comparison=comparison,
                      versus_baseline=table, cause=cause, reasons=reasons, evidence=evidence, gain=gain, moved=moved,

@@ -219,6 +219,7 @@ class TermCheck:
     gains: bool = False         # passes the gain thresholds (or takes the discrepancy over)
     share: float | None = None  # fraction of the reference's discrepancy the term takes over
     size_repeats_prior: bool = False
+    explains_only: bool = False  # passed only by explaining the discrepancy's shape, not by its gain
     at_edge: list = field(default_factory=list)        # "parameter (upper/lower edge ...)"
     repeats_prior: list = field(default_factory=list)  # parameters whose posterior repeats the prior
     reasons: list = field(default_factory=list)
@@ -268,6 +269,20 @@ def parameter_health(candidate: CandidateFit, term: str, rng=None):
     return out
 
 
+def stand_ins_by_shape(named, rounds, share, options):
+    """The named terms to withdraw: every one named only because it took the discrepancy's shape over
+    (:data:`EXPLAINS`, its gain within 2 se of zero) when the named terms, fitted without the discrepancy,
+    explain less than ``options.min_share`` of its gain. Such a term did not explain the misfit: with the
+    discrepancy present the stage law's parameters moved and the term took the rest (an over-inflation bump
+    of another inflation law, `benchmarks/independent_drops.md` C1: canopy_breathing 3.7 ± 7.0 over the
+    discrepancy, the stage's start and expopen moved 30 sd, the breathing alone 3 % of the discrepancy's
+    gain). Withdrawn only when every named term is such a one, so the named fit stays the one measured."""
+    by_shape = {c.term for r in rounds for c in r["checks"] if c.term == r.get("chosen") and c.explains_only}
+    if named and share < options.min_share and set(named) <= by_shape:
+        return list(named)
+    return []
+
+
 def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: DiagnoseOptions,
                share=None, misfit=False) -> TermCheck:
     """Judge ``term`` in ``candidate`` (= reference + term) against ``reference`` (the rule above).
@@ -298,7 +313,7 @@ def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: 
     if passes(diff, se, options):
         r.append(f"{term} gains {diff:.1f} ± {se:.1f} in elpd over {reference.name}")
     elif takes_over or explains:
-        check.gains = True
+        check.gains, check.explains_only = True, not takes_over
         r.append(f"{term} gains {diff:.1f} ± {se:.1f} in elpd over {reference.name} and takes over "
                  f"{100 * share:.0f} % of its discrepancy: the physics explains the misfit the generic term found"
                  + ("" if takes_over else " as well as the generic term does, with one term's parameters"))
