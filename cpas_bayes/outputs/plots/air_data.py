@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import matplotlib.pyplot as plt
 
-_MODEL = "#d95f02"
+from cpas_bayes.outputs.figures import MODEL_COLOR as _MODEL
+
 _DATA = "#1f9bd1"
 
 
