@@ -395,6 +395,9 @@ def cds_o_parameter(summary: dict, posterior_path: Path, chute_weight: float):
         draws = np.asarray(post[target[0]].values, dtype=float).ravel()
         medians = {n: float(np.median(np.asarray(post[n].values, dtype=float))) for n in names
                    if post[n].values.dtype.kind == "f"}
+        # 90 % intervals of the systematic sensor terms (truth: latency as simulated, scale 1, bias 0)
+        sensors = {n: tuple(float(x) for x in np.quantile(np.asarray(post[n].values, float), [0.05, 0.95]))
+                   for n in ("gnss_latency", "accel_scale", "accel_bias") if n in names}
         ratio = None
         if "vehicle_weight" in names:
             w = np.asarray(post["vehicle_weight"].values, dtype=float).ravel() + chute_weight
@@ -402,7 +405,7 @@ def cds_o_parameter(summary: dict, posterior_path: Path, chute_weight: float):
     finally:
         tree.close()
     q05, q50, q95 = np.quantile(draws, [0.05, 0.5, 0.95])
-    return target[0], (float(q05), float(q50), float(q95)), float(np.std(draws)), medians, ratio
+    return target[0], (float(q05), float(q50), float(q95)), float(np.std(draws)), medians, ratio, sensors
 
 
 def diagnostics(summary: dict):
@@ -418,7 +421,9 @@ FIELDS = ["design", "drop", "bundle", "true_cds_o", "nominal_cds_o", "parameter"
           "covered", "converged", "rhat_max", "ess_bulk_min", "wall_s", "fit_rc", "peak_G", "fill_10_90_s",
           "airspeed_open", "true_cds_per_weight", "cds_per_weight_q05", "cds_per_weight_q50",
           "cds_per_weight_q95", "ratio_covered", "true_vehicle_weight", "stated_vehicle_weight",
-          "fitted_vehicle_weight", "true_latency", "fitted_latency", "fitted_noise_acc", "warnings",
+          "fitted_vehicle_weight", "true_latency", "fitted_latency", "fitted_noise_acc", "fitted_noise_gnss",
+          "gnss_latency_q05", "gnss_latency_q95", "latency_covered", "accel_scale_q05", "accel_scale_q95",
+          "scale_covered", "accel_bias_q05", "accel_bias_q95", "warnings",
           "other_medians", "error"]
 
 
@@ -498,7 +503,7 @@ def main(argv=None):
         row.update(fit_rc=rc, wall_s=round(wall, 1))
         try:
             summary = json.loads((fit_out / "summary.json").read_text())
-            name, (q05, q50, q95), sd, medians, ratio = cds_o_parameter(summary, fit_out / "posterior.nc",
+            name, (q05, q50, q95), sd, medians, ratio, sensors = cds_o_parameter(summary, fit_out / "posterior.nc",
                                                                         truth["stated"]["chute_weight"])
             w_true = truth["vehicle_weight"] + truth["parachute_weight"]
             if ratio is not None:
@@ -512,6 +517,11 @@ def main(argv=None):
                        true_latency=truth["gnss_latency"],
                        fitted_latency=round(medians.get("gnss_latency", float("nan")), 4),
                        fitted_noise_acc=round(medians.get("noise_acc", float("nan")), 3),
+                       fitted_noise_gnss=round(medians.get("noise_gnss", float("nan")), 3),
+                       **{f"{n}_q{q}": round(v, 4) for n, iv in sensors.items() for q, v in zip(("05", "95"), iv)},
+                       latency_covered=bool(sensors["gnss_latency"][0] <= truth["gnss_latency"]
+                                            <= sensors["gnss_latency"][1]),
+                       scale_covered=bool(sensors["accel_scale"][0] <= 1.0 <= sensors["accel_scale"][1]),
                        warnings=";".join(w.get("code", "?") for w in summary.get("warnings", [])))
             conv, rhat, ess = diagnostics(summary)
             row.update(parameter=name, q05=round(q05, 3), q50=round(q50, 3), q95=round(q95, 3), sd=round(sd, 3),

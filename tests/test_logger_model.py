@@ -21,7 +21,7 @@ from cpas_bayes.stats.logger_model import LoggerModel
 
 def _truth_theta(model, truth_doc):
     values = logger_truth_parameters(truth_doc)
-    values.update(noise_acc=1.0)
+    values.update(noise_acc=1.0, noise_gnss=1.0)
     return np.array([values[n] for n in model.names])
 
 
@@ -40,6 +40,27 @@ def test_a_logger_bundle_gets_the_logger_model_with_the_air_parameters():
             prepare_model(test, reduce_test(test), extensions=(make_extension(term),))
     # the added mass reads each walker's reconstructed air data in place of measured channels
     assert "k_a" in prepare_model(test, reduce_test(test), extensions=(make_extension("added_mass"),)).names
+
+
+def test_the_receivers_error_multiplier_scales_its_residuals_alone():
+    """noise_gnss (λ_R) scales the receiver's part of the joint Gaussian, noise_acc the bins' given the receiver:
+    the bins' log-likelihood does not move with λ_R, and the total moves as −S/(2λ_R²) − k·log λ_R with k the
+    number of receiver values (3 per velocity sample, 1 per altitude), solved here from three values of λ_R."""
+    test, doc = synthesize_logger("logger-drop", 2)
+    model = prepare_model(test, reduce_test(test))
+    assert model.parameters[model.index["noise_gnss"]].group == "nuisance"
+    theta = np.repeat(_truth_theta(model, doc)[None], 3, axis=0)
+    lam = np.array([1.0, 2.0, 4.0])
+    theta[:, model.index["noise_gnss"]] = lam
+    bins = model.pointwise_log_likelihood(theta).sum(axis=1)
+    assert np.allclose(bins, bins[0], rtol=0, atol=1e-9)
+    f = model.log_likelihood(theta) - bins
+    # f(λ) = c − S/(2λ²) − k·log λ: two differences, two unknowns
+    a = np.array([[-0.5 * (1 / lam[1] ** 2 - 1), -np.log(lam[1])], [-0.5 * (1 / lam[2] ** 2 - 1), -np.log(lam[2])]])
+    S, k = np.linalg.solve(a, f[1:] - f[0])
+    ch = model.channels
+    assert k == pytest.approx(3 * ch.gnss_time.size + ch.altitude_time.size, rel=1e-9)
+    assert 0.5 * k < S < 2.0 * k   # at the truth the receiver's whitened residuals have unit variance
 
 
 @pytest.mark.parametrize("seed", [3, 6])

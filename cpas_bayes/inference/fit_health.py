@@ -57,7 +57,7 @@ ESS_MIN = 400
 PHYSICAL_LIMITS = {"ck": (1.0, None), "eps": (0.0, 1.0)}
 FROM_BUNDLE = ("vehicle_weight", "vehicle_cds")   # priors built from the bundle's stated values and sigmas
 MIN_SAMPLES_PER_FILL = 8
-MULTIPLIERS = {"noise_acc": "accelerometer", "noise_lc": "load-cell"}
+MULTIPLIERS = {"noise_acc": "accelerometer", "noise_lc": "load-cell", "noise_gnss": "GNSS receiver"}
 
 
 def warning(code, message, parameter=None):

@@ -227,8 +227,9 @@ def residuals(fit, tree=None) -> ResidualReport:
     high_table = pd.DataFrame({"time": obs.time[high], "pareto_k": k[high],
                                "phase": phases[ACC_CHANNEL][high].astype(str)})
     noise = {"noise_acc": quantile_summary(post["noise_acc"].values, (0.05, 0.95), sd=False)}
-    if "noise_lc" in post:
-        noise["noise_lc"] = quantile_summary(post["noise_lc"].values, (0.05, 0.95), sd=False)
+    for name in ("noise_lc", "noise_gnss"):   # load cells; a logger bundle's receiver
+        if name in post:
+            noise[name] = quantile_summary(post[name].values, (0.05, 0.95), sd=False)
     elpd = {"elpd_loo": float(loo.elpd), "se": float(loo.se), "p_loo": float(loo.p),
             "n_high_pareto_k": int(high.size), "pareto_k_max": float(np.max(k))}
     return ResidualReport(time=np.asarray(obs.time), residuals=res, phases=phases, table=pd.DataFrame(rows),

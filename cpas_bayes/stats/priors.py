@@ -59,7 +59,7 @@ PRIORS_DIR = Path(__file__).parent.parent / "data" / "priors"
 ROLES = ("first", "reefed", "full_open")
 STAGE_PARAMETERS = ("n_p", "expopen", "ck", "tk", "eps")   # sampled per stage (see the kind files)
 PARACHUTE_PARAMETERS = ("cd_o",)
-NUISANCE_PARAMETERS = ("load_scale", "noise_acc", "noise_lc")   # what the model reads from [nuisance]
+NUISANCE_PARAMETERS = ("load_scale", "noise_acc", "noise_lc", "noise_gnss")   # what the model reads from [nuisance]
 PRIOR_FAMILIES = ("uniform", "normal", "truncnormal", "lognormal")   # those PriorSet evaluates in one pass
 # The tables of a prior file and the parameters each may hold (None: a string, not a table).
 FILE_TABLES = {"kind": None, "description": None, "finite_mass_ck": bool, "parachute": PARACHUTE_PARAMETERS,
@@ -91,6 +91,7 @@ DOMAINS = {
     "load_scale": Domain(*_POSITIVE, 1.0, "", "true load / load-cell reading: ≤ 0 flips or erases the load"),
     "noise_acc": Domain(*_POSITIVE, 1.0, "", "it multiplies a 1-sigma, which is positive"),
     "noise_lc": Domain(*_POSITIVE, 1.0, "", "it multiplies a 1-sigma, which is positive"),
+    "noise_gnss": Domain(*_POSITIVE, 1.0, "", "it multiplies a 1-sigma, which is positive"),
 }
 # A prior may put at most this share outside its parameter's domain: a normal 6 sigma from the edge (n_p of
 # normal(12, 1) puts 1e-33 below 0). No fit draws that many points, so the stage law never sees such a value.
