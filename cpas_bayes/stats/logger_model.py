@@ -36,8 +36,8 @@ scales the receiver's residuals (its noise and the walk it sees), λ_A =
 misfit of the bins (an inflation the law cannot make) inflated the receiver's
 sigmas too and let the bins pull the accelerometer's scale and the latency:
 on six drops of an independent simulator with an over-inflation bump the
-scale went to 0.986 and the latency 5 ms early (MAP), against 0.996 and 1 ms
-with λ_R apart (``benchmarks/independent_drops.md``). The inflation model
+scale went to 0.986 and the latency 5 ms early (MAP of two), against
+0.994–0.997 and 1–2 ms with λ_R apart (``benchmarks/independent_drops.md``). The inflation model
 never enters step 1, so the airspeed does not bend to fit it.
 
 Step 3 is shown in drag-area units so that every figure and check of the
@@ -382,8 +382,8 @@ class LoggerModel(TestModel):
 
     def log_likelihood(self, theta):
         """Receiver samples and reading bins jointly normal (:func:`joint_errors`; module docstring), (B,):
-        log p(receiver | noise_gnss) + log p(bins | receiver, noise_acc), which is the joint exactly. An extension with its own error
-        model replaces the second part."""
+        log p(receiver | noise_gnss) + log p(bins | receiver, noise_acc), which is the joint exactly. An
+        extension with its own error model replaces the second part."""
         theta = np.atleast_2d(theta)
         pred, z_r = self._predict(theta)
         noise = theta[:, self._noise_gnss]
