@@ -503,8 +503,8 @@ def main(argv=None):
         row.update(fit_rc=rc, wall_s=round(wall, 1))
         try:
             summary = json.loads((fit_out / "summary.json").read_text())
-            name, (q05, q50, q95), sd, medians, ratio, sensors = cds_o_parameter(summary, fit_out / "posterior.nc",
-                                                                        truth["stated"]["chute_weight"])
+            name, (q05, q50, q95), sd, medians, ratio, sensors = cds_o_parameter(
+                summary, fit_out / "posterior.nc", truth["stated"]["chute_weight"])
             w_true = truth["vehicle_weight"] + truth["parachute_weight"]
             if ratio is not None:
                 row.update(true_cds_per_weight=round(1e3 * truth["cds_o"] / w_true, 5),

@@ -33,18 +33,11 @@ def block_log_likelihood(model, theta, envelope, block):
     """Σ over consecutive blocks B of ``block`` bins of log p(z_B | z_−B, θ) for a model holding the
     discrepancy, plus the whitening's log-determinants: Q = (I + σ_δ²·Φ̃Φ̃ᵀ)⁻¹, g = Q·z,
     log p = −½·(g_Bᵀ·Q_BB⁻¹·g_B − log det Q_BB + |B|·log 2π + log det Σ_B)."""
-    from cpas_bayes.stats.discrepancy import KNOT_BINS, channel_sigma, spline_basis
+    from cpas_bayes.stats.discrepancy import drag_area_basis
 
-    obs = model.obs
-    n, channels = obs.n_bins, 1 + obs.lc.shape[0]
-    phi = spline_basis(n, KNOT_BINS)
-    k = phi.shape[1]
-    scale = np.median(channel_sigma(obs), axis=1)
-    centre = np.clip(np.argmax(phi, axis=0), 0, n - 1)
-    raw = np.zeros((channels * k, channels, n))
-    for c in range(channels):
-        raw[c * k:(c + 1) * k, c, :] = (scale[c] * envelope[c, centre])[:, None] * phi.T
-    white = model.whiten(raw).reshape(channels * k, channels * n)          # Φ̃ᵀ (M, C·N)
+    raw, _ = drag_area_basis(model.obs, envelope)                          # as the model's own discrepancy
+    channels, n = raw.shape[1], raw.shape[2]
+    white = model.whiten(raw).reshape(raw.shape[0], channels * n)          # Φ̃ᵀ (M, C·N)
     theta = np.atleast_2d(theta)
     z, log_det = model.whitened_residuals(theta, model.predict(theta))     # (1, C, N), (1, N)
     sigma2 = np.exp(2.0 * theta[0, model.index["discrepancy_log_scale"]])

@@ -33,6 +33,7 @@ from scipy import stats
 
 from cpas_bayes.core.summaries import quantile_summary
 from cpas_bayes.inference.check_draws import ACC_CHANNEL, channel_sigma, check_tree, posterior_median
+from cpas_bayes.inference.fit_health import MULTIPLIERS
 from cpas_bayes.inference.loo import psis_loo
 
 LJUNG_BOX_LAGS = 10              # Ljung–Box lags (fewer when a phase is short: n // 4)
@@ -226,10 +227,8 @@ def residuals(fit, tree=None) -> ResidualReport:
     high = np.flatnonzero(k > PARETO_K_LIMIT)
     high_table = pd.DataFrame({"time": obs.time[high], "pareto_k": k[high],
                                "phase": phases[ACC_CHANNEL][high].astype(str)})
-    noise = {"noise_acc": quantile_summary(post["noise_acc"].values, (0.05, 0.95), sd=False)}
-    for name in ("noise_lc", "noise_gnss"):   # load cells; a logger bundle's receiver
-        if name in post:
-            noise[name] = quantile_summary(post[name].values, (0.05, 0.95), sd=False)
+    noise = {name: quantile_summary(post[name].values, (0.05, 0.95), sd=False) for name in MULTIPLIERS
+             if name in post}
     elpd = {"elpd_loo": float(loo.elpd), "se": float(loo.se), "p_loo": float(loo.p),
             "n_high_pareto_k": int(high.size), "pareto_k_max": float(np.max(k))}
     return ResidualReport(time=np.asarray(obs.time), residuals=res, phases=phases, table=pd.DataFrame(rows),

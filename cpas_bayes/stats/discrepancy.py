@@ -71,6 +71,22 @@ def spline_basis(n_bins, knot_bins=KNOT_BINS):
     return BSpline.design_matrix(np.arange(n_bins, dtype=float), knots, 3).toarray()
 
 
+def drag_area_basis(obs, envelope=None, knot_bins=KNOT_BINS):
+    """The discrepancy's basis in drag-area units, (C·K, C, N): channel c's K splines, each scaled by the
+    channel's median 1-sigma s_c and the envelope at its centre (``None``: 1); and s_c (C,), m²."""
+    n, channels = obs.n_bins, 1 + obs.lc.shape[0]
+    phi = spline_basis(n, knot_bins)                                        # (N, K)
+    k = phi.shape[1]
+    channel_scale = np.median(channel_sigma(obs), axis=1)
+    local = np.ones((channels, n)) if envelope is None else envelope
+    centre = np.clip(np.argmax(phi, axis=0), 0, n - 1)
+    raw = np.zeros((channels * k, channels, n))
+    for c in range(channels):
+        # each basis function's prior scale: the channel's noise times the envelope at its centre
+        raw[c * k:(c + 1) * k, c, :] = (channel_scale[c] * local[c, centre])[:, None] * phi.T
+    return raw, channel_scale
+
+
 class Discrepancy(Extension):
     """The generic discrepancy term (see the module docstring); ``name = "discrepancy"``."""
 
@@ -92,16 +108,8 @@ class Discrepancy(Extension):
     def _prepare(self, model):
         obs = model.obs
         n, channels = obs.n_bins, 1 + obs.lc.shape[0]
-        phi = spline_basis(n, self.knot_bins)                               # (N, K)
-        k = phi.shape[1]
-        self.channel_scale = np.median(channel_sigma(obs), axis=1)                       # s_c (C,), m²
-        raw = np.zeros((channels * k, channels, n))                         # basis in drag-area units
-        local = np.ones((channels, n)) if self.envelope is None else self.envelope
-        for c in range(channels):
-            # each basis function's prior scale: the channel's noise times the envelope at its centre
-            centre = np.clip(np.argmax(phi, axis=0), 0, n - 1)
-            raw[c * k:(c + 1) * k, c, :] = (self.channel_scale[c] * local[c, centre])[:, None] * phi.T
-        white = model.whiten(raw).reshape(channels * k, channels * n)      # Φ̃ᵀ (M, C·N)
+        raw, self.channel_scale = drag_area_basis(obs, self.envelope, self.knot_bins)   # s_c (C,), m²
+        white = model.whiten(raw).reshape(raw.shape[0], channels * n)      # Φ̃ᵀ (M, C·N)
         gram = white @ white.T
         g, u = np.linalg.eigh(gram)
         self.eigenvalues = np.clip(g, 0.0, None)                            # (M,)
@@ -111,7 +119,7 @@ class Discrepancy(Extension):
         # ψ_ij ψ_ijᵀ per basis direction j and bin i, flattened (M, C·C·N): the Q_ii blocks are
         # then one matrix product per chunk of draws
         self._psi_outer = np.einsum("mcn,mdn->mcdn", self._psi, self._psi).reshape(self._psi.shape[0], -1)
-        self._raw_rotated = (u.T @ raw.reshape(channels * k, channels * n)).reshape(-1, channels, n)  # (Φ·U)ᵀ
+        self._raw_rotated = (u.T @ raw.reshape(raw.shape[0], channels * n)).reshape(-1, channels, n)  # (Φ·U)ᵀ
         self.n_channels, self.n_bins = channels, n
 
     def _projections(self, z):
