@@ -261,6 +261,10 @@ def _call_without_reports(args):
     return fn(item, None)
 
 
+# imported by the fork server beside the tasks' modules: numba started once there, not in every worker
+_NUMBA_START = "cpas_bayes.core.numba_start"
+
+
 def start_worker_server(modules):
     """Start the fork server of local workers now, importing ``modules`` (names) in it.
 
@@ -275,7 +279,7 @@ def start_worker_server(modules):
         return
     from multiprocessing import forkserver
 
-    mp.get_context("forkserver").set_forkserver_preload(sorted(modules))
+    mp.get_context("forkserver").set_forkserver_preload(sorted(set(modules) | {_NUMBA_START}))
     forkserver.ensure_running()
 
 
@@ -304,7 +308,8 @@ class ProcessExecutor(Executor):
             # The server imports what the caller has imported of the package (the tasks' modules and
             # their numerical libraries), so that workers start warm without this layer naming them;
             # unless it was started earlier (start_worker_server), with the modules the program named.
-            self._ctx.set_forkserver_preload(sorted(m for m in sys.modules if m.startswith("cpas_bayes.") and not m.endswith("__main__")))
+            self._ctx.set_forkserver_preload(sorted({m for m in sys.modules if m.startswith("cpas_bayes.")
+                                                     and not m.endswith("__main__")} | {_NUMBA_START}))
             # Start the server now: its imports (~2 s) overlap the caller's work until the first map.
             forkserver.ensure_running()
         else:
