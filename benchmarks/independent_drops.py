@@ -434,6 +434,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="--max-steps 2000 and no diagnose (a smoke run)")
     ap.add_argument("--max-steps", type=int, default=20000)
     ap.add_argument("--no-diagnose", action="store_true", help="skip cpas-bayes diagnose")
+    ap.add_argument("--with", dest="terms", default=None,
+                    help="terms every fit carries beside the stage law (cpas-bayes fit --with), e.g. discrepancy")
     ap.add_argument("--bundles-only", action="store_true", help="write and validate the bundles, fit nothing")
     ap.add_argument("--diagnose-only", action="store_true",
                     help="skip the fits (use those already under --out) and run only the diagnoses")
@@ -491,7 +493,7 @@ def main(argv=None):
             continue
         fit_out.parent.mkdir(parents=True, exist_ok=True)
         cmd = [exe, "fit", str(bundle), "--out", str(fit_out), "--seed", "0", "--workers", "1",
-               "--max-steps", str(max_steps)]
+               "--max-steps", str(max_steps)] + (["--with", args.terms] if args.terms else [])
         wall_file = out / "fits" / f"{design}{k}.wall_s"
         if (fit_out / "summary.json").exists() and wall_file.exists():
             rc, wall = 0, float(wall_file.read_text())

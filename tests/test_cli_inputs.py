@@ -42,6 +42,7 @@ from test_montecarlo import drogue_spec, hand_memo
 from test_pool import write_fit_folder
 
 DROGUE = EXAMPLES_DIR / "drogue-clean"
+LOGGER_DROP = Path(__file__).parent.parent / "docs" / "examples" / "logger-drop"
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 
@@ -148,6 +149,12 @@ def bad_options(f):
         ("fit --ess-target 0", fit + ["--stop", "ess", "--ess-target", "0"], "--ess-target"),
         ("fit --ess-target beyond", fit + ["--stop", "ess", "--ess-target", "1000000"], "--ess-target"),
         ("fit --ess-target with --stop tau", fit + ["--stop", "tau", "--ess-target", "1000"], "--ess-target"),
+        ("fit --with unknown", fit + ["--with", "discrepency"], "did you mean 'discrepancy'"),
+        ("fit --with twice", fit + ["--with", "discrepancy,discrepancy"], "discrepancy is given twice"),
+        ("fit --with nothing", fit + ["--with", " , "], "--with"),
+        ("fit --with a load-cell term where there are none",
+         ["fit", LOGGER_DROP, "--out", "OUT", "--with", "discrepancy,friction_drift"],
+         "friction_drift acts on load cells, and SYN-logger-drop-3 has none: leave it out"),
         ("fit --max-steps below one chunk", fit + ["--max-steps", "100"], "--max-steps"),
         ("fit --max-steps beyond", fit + ["--max-steps", "1000000"], "--max-steps"),
         ("fit with one ensemble (the ESS rule compares them)", fit + ["--ensembles", "1"], "--ensembles"),

@@ -629,7 +629,9 @@ def test_diagnose_command_writes_the_documented_outputs(tmp_path):
                  "comparison.png", "candidates.csv", "baseline/residuals.png", "baseline/ppc.png",
                  "baseline/loo_pit.png"):
         assert (out / name).stat().st_size > 0, name
-    assert "sensor_lag" in (out / "diagnosis.md").read_text()
+    markdown = (out / "diagnosis.md").read_text()
+    assert "sensor_lag" in markdown
+    assert "`cpas-bayes fit BUNDLE --out FOLDER --with sensor_lag`" in markdown   # how to fit what was named
 
 
 def test_diagnose_command_refuses_an_unknown_candidate(tmp_path, capsys):

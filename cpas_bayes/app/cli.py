@@ -31,7 +31,7 @@ from cpas_bayes.inference.fit import PROPOSALS
 from cpas_bayes.inference.stopping import ESS_TARGET
 from cpas_bayes.app.options import (BATCH, ENSEMBLES, ESS_TARGETS, RUNS, SEED, STEP_CAPS, STOP, WORKERS,
                                     check_fit_folders, check_scheduler, out_option, priors_option, seed_option,
-                                    stop_problem)
+                                    stop_problem, term_names, terms_the_test_cannot_carry)
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
@@ -283,8 +283,11 @@ def synth_command(scenario, effect, magnitude, seed, out):
 @click.option("--coordinates", type=click.Choice(COORDINATES), default="grown", show_default=True,
               help="Where the walkers move (same posterior): 'grown' drag areas ε·CDS_o, times to peak (drag area "
                    "grown if cut short); 'drag_area', 'peak_time' one of these; 'model' θ as written (README).")
+@click.option("--with", "terms", default=None, metavar="TERMS",
+              help="Comma-separated terms fitted beside the stage law: a cause 'diagnose' named, or 'discrepancy' "
+                   "for a misfit it left unexplained (which then does not pull the weights and air-data terms).")
 def fit_command(bundle, out, seed, priors, decay, below_previous, workers, scheduler, ensembles, stop, ess_target,
-                max_steps, proposal, coordinates):
+                max_steps, proposal, coordinates, terms):
     """Posterior of every inflation parameter of one flight test (emcee).
 
     Writes OUT/posterior.nc (ArviZ DataTree), OUT/summary.json, figures, and
@@ -298,17 +301,23 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.inference.predictive_checks import run_checks
     from cpas_bayes.outputs.plots.fit import write_fit_figures
 
+    from cpas_bayes.stats.model_terms import make_extension
+
     problem = stop_problem(stop, ess_target, ensembles)
     if problem:
         raise click.BadParameter(problem[1], param_hint=problem[0])
+    terms = term_names(terms, "--with") if terms is not None else ()
     test = read_bundle(bundle)
+    if terms_the_test_cannot_carry(terms, test):
+        raise click.BadParameter(terms_the_test_cannot_carry(terms, test), param_hint="--with")
     _check_priors(priors, test)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
                              ess_target=ess_target or ESS_TARGET, proposal=proposal, coordinates=coordinates,
                              max_steps=max_steps)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}, "
-               f"stage below previous: {below_previous}")
-    model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous)
+               f"stage below previous: {below_previous}{', with ' + ', '.join(terms) if terms else ''}")
+    model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous,
+                          extensions=tuple(make_extension(n) for n in terms))
     on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
                   "rerun the same command to resume from it")
     out = claim_folder(out)
@@ -493,18 +502,8 @@ def diagnose_command(bundle, out, seed, priors, candidates, workers, scheduler):
     from cpas_bayes.inference.candidate_fits import DIAGNOSIS_SAMPLER, DiagnoseOptions
     from cpas_bayes.inference.diagnose import diagnose_test
     from cpas_bayes.outputs.diagnosis import write_diagnosis
-    from cpas_bayes.core.inputs import did_you_mean
-    from cpas_bayes.stats.model_terms import EXTENSIONS
 
-    names = tuple(c.strip() for c in candidates.split(",") if c.strip())
-    unknown = [n for n in names if n not in EXTENSIONS]
-    if unknown or not names:
-        raise click.BadParameter(f"unknown extension(s) {', '.join(unknown) or '(none given)'}"
-                                 f"{did_you_mean(unknown[0], EXTENSIONS) if unknown else ''}; use any of "
-                                 f"{', '.join(EXTENSIONS)}", param_hint="--candidates")
-    if len(set(names)) < len(names):
-        raise click.BadParameter(f"{sorted({n for n in names if names.count(n) > 1})[0]} is given twice",
-                                 param_hint="--candidates")
+    names = term_names(candidates, "--candidates")
     test = read_bundle(bundle)
     _check_priors(priors, test)
     options = DiagnoseOptions(seed=seed, candidates=names, priors=priors,

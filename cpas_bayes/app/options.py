@@ -182,6 +182,35 @@ def seed_option(help_text):
     return click.option("--seed", type=SEED, default=0, show_default=True, help=help_text)
 
 
+def term_names(value, param_hint):
+    """The model terms named in a comma-separated ``value`` (``--candidates``, ``--with``), each known and named
+    once; a usage error naming the option otherwise."""
+    from cpas_bayes.core.inputs import did_you_mean
+    from cpas_bayes.stats.model_terms import EXTENSIONS
+
+    names = tuple(c.strip() for c in value.split(",") if c.strip())
+    unknown = [n for n in names if n not in EXTENSIONS]
+    if unknown or not names:
+        raise click.BadParameter(f"unknown extension(s) {', '.join(unknown) or '(none given)'}"
+                                 f"{did_you_mean(unknown[0], EXTENSIONS) if unknown else ''}; use any of "
+                                 f"{', '.join(EXTENSIONS)}", param_hint=param_hint)
+    if len(set(names)) < len(names):
+        raise click.BadParameter(f"{sorted({n for n in names if names.count(n) > 1})[0]} is given twice",
+                                 param_hint=param_hint)
+    return names
+
+
+def terms_the_test_cannot_carry(names, test):
+    """The message refusing the terms of ``names`` that act on channels ``test`` lacks, or None."""
+    from cpas_bayes.stats.model_terms import applies
+
+    lacking = [n for n in names if not applies(n, test)]
+    if not lacking:
+        return None
+    return (f"{', '.join(lacking)} act{'s' if len(lacking) == 1 else ''} on load cells, and {test.name} has none: "
+            f"leave {'it' if len(lacking) == 1 else 'them'} out")
+
+
 def priors_option():
     return click.option("--priors", type=click.Path(path_type=Path), default=None, callback=check_toml_file,
                         help="TOML file whose tables replace the default priors (same layout as priors/*.toml).")

@@ -119,7 +119,8 @@ def multiplier_warnings(draws):
                 out.append(warning(
                     "error_multiplier",
                     f"the {channel} residuals are {m:.1f}x the stated 1-sigma ({name} > {MAX_MULTIPLIER:g}): the "
-                    "stated sigmas are too small or the model misses something (run 'cpas-bayes diagnose')", name))
+                    "stated sigmas are too small or the model misses something (run 'cpas-bayes diagnose'; a misfit it "
+                    "leaves unexplained pulls the other terms less in a fit '--with discrepancy')", name))
     return out
 
 

@@ -352,6 +352,10 @@ class LooPitResult:
     values: dict
     table: pd.DataFrame
     time: np.ndarray
+    not_computed: str = ""   # why there are no values (a likelihood with no per-channel density), or ""
+
+
+_PIT_COLUMNS = ("channel", "n", "ks_distance", "ks_p_value", "dkw_band", "pit_mean", "pit_sd", "frac_outside_90")
 
 
 def loo_pit(fit, tree=None) -> LooPitResult:
@@ -362,9 +366,12 @@ def loo_pit(fit, tree=None) -> LooPitResult:
     frac_outside_90 (share of PIT values outside [0.05, 0.95], 0.10 if calibrated).
     """
     tree = check_tree(fit) if tree is None else tree
-    if "acc" not in tree["log_likelihood"]:
-        raise ValueError("LOO-PIT needs the log-likelihood per channel; this model's likelihood "
-                         "(an extension's) gives only the total per time bin")
+    if "acc" not in tree["log_likelihood"]:   # a term whose errors join the channels (the discrepancy, AR(1))
+        return LooPitResult(values={}, table=pd.DataFrame(columns=list(_PIT_COLUMNS)),
+                            time=np.asarray(fit.model.obs.time),
+                            not_computed=f"not computed: the likelihood of {fit.model.name} joins the channels of "
+                                         "each time bin, so no channel has a density of its own to take a PIT "
+                                         "from; the PPC and the residuals stand")
     pit = psis_loo_pit(tree, [c for c in ("acc", "lc") if c in tree["observed_data"]])
     # The PSIS-weighted sums can overshoot [0, 1] by round-off; a PIT is a probability.
     values = {ACC_CHANNEL: np.clip(np.asarray(pit["acc"].values, float), 0.0, 1.0)}
@@ -417,6 +424,7 @@ def check_report(fit, n_draws=200, rng=None, checks=None) -> dict:
         "ppc": ppc,
         "ppc_flags": flags,
         "loo_pit": checks.loo_pit.table,
+        **({"loo_pit_not_computed": checks.loo_pit.not_computed} if checks.loo_pit.not_computed else {}),
         "residuals": res.table,
         "pareto_k": {**res.elpd_loo, "limit": PARETO_K_LIMIT, "high": res.high_pareto_k},
         "noise": res.noise,

@@ -140,6 +140,12 @@ def _headline(d: Diagnosis):
                   + (f", which explain {100 * u['share_explained']:.0f} % of it" if named else "")
                   + f". Where: {places or 'spread over the record (no region stands out)'}. "
                   "See `discrepancy.png` for its shape.", ""]
+    if d.causes:
+        terms = ",".join(named + (["discrepancy"] if d.unexplained else []))
+        lines += [f"To fit the test with {'them' if len(named) > 1 or (named and d.unexplained) else 'it'}: "
+                  f"`cpas-bayes fit BUNDLE --out FOLDER --with {terms}`"
+                  + (" (the discrepancy carries what no term explains, so that it does not pull the weights, drag "
+                     "areas and air-data terms)" if d.unexplained else "") + ".", ""]
     if not d.causes:
         lines += ["**No cause** (`none`): nothing to explain. The generic discrepancy gains "
                   f"{d.discrepancy['elpd_gain']:.1f} ± {d.discrepancy['elpd_gain_se']:.1f} and the baseline passes its "

@@ -8,6 +8,8 @@ the diagnosis' residual figures.
 
 from __future__ import annotations
 
+import textwrap
+
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Patch
@@ -77,6 +79,9 @@ def plot_ppc(result):
 def plot_loo_pit(result):
     """LOO-PIT ECDF difference per channel with the DKW 95 % band, and the PIT histograms."""
     fig = plt.figure(figsize=(12, 4.6))
+    if not result.values:
+        fig.text(0.5, 0.5, textwrap.fill("LOO-PIT " + result.not_computed, 90), ha="center", va="center")
+        return fig
     ax_e, ax_h = fixed_grid(fig, 1, 2, left=0.85, right=0.2, top=0.7, bottom=0.55, wspace=0.85,
                             hspace=0.0).subplots(squeeze=False)[0]
     grid = np.linspace(0, 1, 201)
