@@ -60,7 +60,7 @@ _API = {
     "compare_loads": "cpas_bayes.loads.compare",
     # outputs
     "write_reduction": "cpas_bayes.outputs.reduction",
-    "write_fit_figures": "cpas_bayes.outputs.plots.fit",
+    "write_fit_figures": "cpas_bayes.outputs.fit_figures",
     "write_diagnosis": "cpas_bayes.outputs.diagnosis",
     "write_pool": "cpas_bayes.outputs.memo",
     "write_monte_carlo": "cpas_bayes.outputs.montecarlo",

@@ -264,7 +264,7 @@ def test_check_report_is_json(drogue_fit, drogue_checks):
 
 @pytest.mark.slow
 def test_write_fit_figures_writes_valid_pngs(drogue_fit, drogue_checks, tmp_path):
-    from cpas_bayes.outputs.plots.fit import write_fit_figures
+    from cpas_bayes.outputs.fit_figures import write_fit_figures
 
     paths = write_fit_figures(drogue_fit, tmp_path / "figures", checks=drogue_checks, n_draws=150)
     names = {p.name for p in paths}

@@ -148,7 +148,7 @@ def test_composite_cluster_fits_end_to_end_and_loses_to_individual_parachutes(dr
     from cpas_bayes.inference.candidate_fits import psis_loo
     from cpas_bayes.inference.fit_folder import load_fit
     from cpas_bayes.inference.predictive_checks import run_checks
-    from cpas_bayes.outputs.plots.fit import write_fit_figures
+    from cpas_bayes.outputs.fit_figures import write_fit_figures
 
     test, individual, truth = drogue_example
     first, second = (truth[f"{p.id}.s2.start"] for p in test.parachutes)

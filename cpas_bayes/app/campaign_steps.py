@@ -134,7 +134,7 @@ def _fit_work(test, reduced, config, checkpoint, echo, executor=None):
         from cpas_bayes.inference.predictive_checks import check_report, run_checks
         from cpas_bayes.inference.fit import fit_model, prepare_model
         from cpas_bayes.inference.fit_folder import record_checks
-        from cpas_bayes.outputs.plots.fit import write_fit_figures
+        from cpas_bayes.outputs.fit_figures import write_fit_figures
 
         model = prepare_model(test, reduced(), priors=config.priors, decay=config.decay,
                               below_previous=config.below_previous)
@@ -281,7 +281,7 @@ def figures_task(job_and_fit, report=None, executor=None):
     last diagnoses leave idle. Each figure is written atomically, then ``figures.json`` with the fit step's
     key; a rerun draws them again only when that key changed or was never written (a refit replaces the whole
     fit folder, the stamp with it)."""
-    from cpas_bayes.outputs.plots.fit import write_fit_figures
+    from cpas_bayes.outputs.fit_figures import write_fit_figures
 
     job, fitted = job_and_fit
     test, config, out, bundle_key, fit_key, diag_key = job

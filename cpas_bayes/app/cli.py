@@ -299,7 +299,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
     from cpas_bayes.inference.fit_folder import fill_time_table, pairing_note, record_checks, write_fit_files
     from cpas_bayes.inference.predictive_checks import run_checks
-    from cpas_bayes.outputs.plots.fit import write_fit_figures
+    from cpas_bayes.outputs.fit_figures import write_fit_figures
 
     from cpas_bayes.stats.model_terms import make_extension
 

@@ -26,7 +26,8 @@ import sys
 _CLI = "cpas_bayes.app.cli"
 # arviz_stats: a fit's DataTree carries the accessor its ESS was computed by, so every worker that unpickles a
 # figure's task would import it (0.35 s each) if the server had not
-_FIT = ("cpas_bayes.inference.fit_folder", "cpas_bayes.inference.predictive_checks", "cpas_bayes.outputs.plots.fit",
+_FIT = ("cpas_bayes.inference.fit_folder", "cpas_bayes.inference.predictive_checks", "cpas_bayes.outputs.fit_figures",
+        "cpas_bayes.outputs.plots.fit",
         "arviz_stats.accessors")
 _DIAGNOSE = ("cpas_bayes.inference.diagnose", "cpas_bayes.outputs.diagnosis", "cpas_bayes.outputs.plots.diagnose")
 

@@ -1,6 +1,6 @@
 """Figures of a fit's checks: the posterior predictive check, LOO-PIT and the standardised residuals.
 
-``ppc.png``, ``loo_pit.png`` and ``residuals.png`` of :func:`cpas_bayes.outputs.plots.fit.write_fit_figures`,
+``ppc.png``, ``loo_pit.png`` and ``residuals.png`` of :func:`cpas_bayes.outputs.fit_figures.write_fit_figures`,
 and of a diagnosis' baseline, drawn from :mod:`cpas_bayes.inference.predictive_checks` and
 :mod:`cpas_bayes.inference.residuals`; the phase shading and the residual figure's legend are shared with
 the diagnosis' residual figures.

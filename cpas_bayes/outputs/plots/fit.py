@@ -1,6 +1,6 @@
 """Figures of a fitted test: posterior bands over the data, loads, corners, traces and checks.
 
-:func:`write_fit_figures` writes, in the bundle's units:
+The figures :func:`cpas_bayes.outputs.fit_figures.write_fit_figures` writes, in the bundle's units:
 
 * ``bands.png`` — each parachute's load-cell drag area (points; raw Eq. 11
   values scaled by the posterior-median friction factor s̄:
@@ -27,10 +27,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import MaxNLocator
 
-from cpas_bayes.core.inputs import inside
-from cpas_bayes.core.ownership import claim_folder
-from cpas_bayes.inference.check_draws import channel_sigma, posterior_matrix, posterior_median, predict_draws
-from cpas_bayes.inference.predictive_checks import run_checks
+from cpas_bayes.inference.check_draws import channel_sigma, posterior_median
 from cpas_bayes.inference.residuals import stage_timing_medians
 from cpas_bayes.outputs.figures import DATA_COLOR as _DATA
 from cpas_bayes.outputs.figures import MODEL_COLOR as _MODEL
@@ -39,10 +36,6 @@ from cpas_bayes.outputs.plots.checks import plot_loo_pit, plot_ppc, plot_residua
 
 _ACC = "#1f9bd1"
 ZOOM = {"infinite": (0.5, 3.0), "finite": (1.0, 10.0)}   # s before / after a stage start
-BAND_DRAWS = 400
-CORNER_FIELDS = ("start", "n_p", "expopen", "ck", "tk", "eps")
-CORNER_UNITS = {"start": "s", "tk": "s"}
-TRACE_PARAMETERS = 6
 CORNER_TICKS = 3   # MaxNLocator's bins: 3-4 ticks on a 2-inch panel
 _SI_QUANTITY = {"m²": "area", "N": "force"}   # parameter unit -> quantity converted to the bundle's units
 DPI = 110
@@ -90,13 +83,6 @@ def _zoom(ax, time, t0, t1, *series, pad=0.05):
 def _mark_starts(ax, starts, label=True):
     for j, s in enumerate(starts):
         ax.axvline(s, color="k", ls=":", lw=0.9, label="stage start (posterior median)" if label and j == 0 else None)
-
-
-def _band_draws(fit, n_draws, rng):
-    model = fit.model
-    draws = posterior_matrix(fit.tree, model.names).reshape(-1, model.ndim)
-    pick = rng.choice(draws.shape[0], size=min(n_draws, draws.shape[0]), replace=False)
-    return predict_draws(model, draws[pick])
 
 
 def _save(fig, path):
@@ -311,33 +297,8 @@ def plot_corner(values, names, labels, title, max_points=2500, rng=None):
     return fig
 
 
-def corner_groups(fit):
-    """[(chute id, stage k (1-based), [parameter names])] of each parachute stage.
-
-    A composite cluster's parachutes share their parameters: their group's stage once,
-    under the first parachute's id.
-    """
-    out, seen = [], set()
-    model = fit.model
-    for i, p in enumerate(model.parachutes):
-        for k in range(1, len(p.stages) + 1):
-            names = [n for n in (model.parameter_name(i, f"s{k}.{f}") for f in CORNER_FIELDS) if n is not None]
-            if tuple(names) not in seen:
-                seen.add(tuple(names))
-                out.append((p.id, k, names))
-    return out
-
-
 # ---------------------------------------------------------------------------
 # trace.png
-
-
-def worst_rhat_parameters(fit, n=TRACE_PARAMETERS):
-    """Names of the ``n`` parameters with the largest R-hat in the summary's diagnostics."""
-    per = fit.summary.get("diagnostics_per_parameter", {}) or {}
-    ranked = sorted(per, key=lambda name: -(per[name].get("rhat") or 0.0))
-    names = [name for name in ranked if name in fit.model.index][:n]
-    return names or list(fit.model.names[:n])
 
 
 def plot_trace(fit, names):
@@ -395,69 +356,8 @@ _DRAWERS = {"bands": plot_bands, "loads": plot_loads, "corner": plot_corner, "tr
             "ppc": plot_ppc, "loo_pit": plot_loo_pit, "residuals": plot_residuals}
 
 
-def _figure_task(job):
-    """Draw one figure and save it: a task of an executor (``job`` = (drawer, path, args, kwargs))."""
+def draw_figure(job):
+    """Draw one figure of :mod:`cpas_bayes.outputs.fit_figures`' plan and save it (``job`` = (drawer, path,
+    args, kwargs)); its path."""
     drawer, path, args, kwargs = job
     return _save(_DRAWERS[drawer](*args, **kwargs), path)
-
-
-FIGURE_PARTS = ("draws", "checks")   # the figures of the posterior's draws; those of the predictive checks
-
-
-def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None, parts=FIGURE_PARTS):
-    """Write every figure of a fit into folder ``out``; return their paths.
-
-    ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given; it may
-    also be a function of no arguments that returns them, called here while the executor's workers draw
-    the figures that need no checks (bands, loads, corners, trace), so that the two overlap.
-    ``executor`` (:mod:`cpas_bayes.core.executor`) draws the figures in parallel, one task each (about
-    1 s of matplotlib apiece); the figures do not depend on it: each has its own random stream.
-    ``parts`` (of :data:`FIGURE_PARTS`) draws some of them: ``"draws"`` (bands, trace, corners, loads) or
-    ``"checks"`` (PPC, LOO-PIT, residuals), each the same file as a call that draws both with the same
-    ``checks`` argument (a campaign draws the first later, as a task of its own).
-    """
-    from cpas_bayes.core.executor import Executor
-
-    unknown = [p for p in parts if p not in FIGURE_PARTS]
-    if unknown:
-        raise ValueError(f"unknown figure parts {unknown}; use some of {FIGURE_PARTS}")
-    executor = executor or Executor()
-    out = claim_folder(out)
-    rng = np.random.default_rng(rng)
-    if checks is None and "checks" in parts:
-        checks = run_checks(fit, rng=rng)
-    jobs = _draw_figure_jobs(fit, out, n_draws, rng) if "draws" in parts else []
-    started = [executor.submit(_figure_task, job) for job in jobs]
-    if "checks" in parts:
-        checks = checks() if callable(checks) else checks
-        started += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
-    return [task.result() for task in started]
-
-
-def _draw_figure_jobs(fit, out, n_draws, rng):
-    """The figures of the posterior's draws as tasks: bands, trace, corners (most parameters first), loads."""
-    pred = _band_draws(fit, n_draws, rng)
-    groups = corner_groups(fit)
-    streams = iter(rng.spawn(len(groups) + 1))
-    # the slowest first, so that two workers finish together (bands and trace ~0.7 s each, a corner of six
-    # parameters 0.6 s, of five 0.4 s, loads 0.35 s)
-    jobs = [("bands", out / "bands.png", (fit, pred), {}),
-            ("trace", out / "trace.png", (fit, worst_rhat_parameters(fit)), {})]
-    loads = ("loads", out / "loads.png", (fit, pred, next(streams)), {})
-    post = fit.tree["posterior"]
-    for pid, k, names in groups:
-        values = np.column_stack([np.asarray(post[n].values, float).ravel() for n in names])
-        short = [n.rsplit(".", 1)[-1] for n in names]
-        labels = [f"{s} [{CORNER_UNITS.get(s, '-')}]" for s in short]
-        title = (f"{fit.model.test.name}: {pid} stage {k} posterior — narrow, single-peaked clouds mean the "
-                 "data pin the parameters; tilted ones show trade-offs")
-        jobs.append(("corner", inside(out, f"corner_{pid}_s{k}.png"), (values, short, labels, title),
-                     {"rng": next(streams)}))
-    jobs[2:] = sorted(jobs[2:], key=lambda job: -len(job[2][1]))   # corners with the most parameters first
-    return jobs + [loads]
-
-
-def _check_figure_jobs(checks, out):
-    return [("ppc", out / "ppc.png", (checks.ppc,), {}),
-            ("loo_pit", out / "loo_pit.png", (checks.loo_pit,), {}),
-            ("residuals", out / "residuals.png", (checks.residuals,), {})]
