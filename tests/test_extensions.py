@@ -44,6 +44,19 @@ def test_a_zero_size_extension_is_the_baseline(clean_drogue, name):
                                                                    rel=1e-10)
 
 
+def test_a_model_takes_one_error_model(clean_drogue):
+    """Two terms that each bring their own error model (the discrepancy, AR(1)): only the first would be used and
+    the other's parameters left to their prior, so the model is refused; either alone, or beside a physical
+    term, is a model."""
+    test, reduction, _ = clean_drogue
+    with pytest.raises(ValueError, match="discrepancy and correlated_noise each bring their own error model"):
+        prepare_model(test, reduction, extensions=(make_extension("discrepancy"), make_extension("correlated_noise")))
+    for names in (("discrepancy",), ("correlated_noise",), ("added_mass", "discrepancy")):
+        model = prepare_model(test, reduction, extensions=tuple(make_extension(n) for n in names))
+        assert model.replaces_error_model
+    assert [n for n in EXTENSIONS if EXTENSIONS[n].brings_error_model()] == ["correlated_noise", "discrepancy"]
+
+
 def test_ar1_with_no_memory_is_the_baseline_bin_by_bin(clean_drogue):
     """At τ_c → 0 the AR(1) model is the baseline's joint likelihood (q̄ covariance included), per bin."""
     test, reduction, truth = clean_drogue

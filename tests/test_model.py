@@ -12,7 +12,8 @@ from cpas_bayes.data.bundle import example_bundles, read_bundle
 from cpas_bayes.inference.fit import prepare_model
 from cpas_bayes.inference.start import first_guess
 from cpas_bayes.physics.inflation import DECAY_SHAPES, cluster_drag_area, parachute_drag_area
-from cpas_bayes.stats.model import Extension, TestModel
+from cpas_bayes.stats.model import TestModel
+from cpas_bayes.stats.model_parts import Extension
 from cpas_bayes.data.synth import truth_parameter_values
 
 

@@ -31,7 +31,7 @@ from cpas_bayes.inference.fit import PROPOSALS
 from cpas_bayes.inference.stopping import ESS_TARGET
 from cpas_bayes.app.options import (BATCH, ENSEMBLES, ESS_TARGETS, RUNS, SEED, STEP_CAPS, STOP, WORKERS,
                                     check_fit_folders, check_scheduler, out_option, priors_option, seed_option,
-                                    stop_problem, term_names, terms_the_test_cannot_carry)
+                                    stop_problem, term_names, terms_problem)
 
 CANDIDATE_NAMES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
@@ -308,8 +308,8 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
         raise click.BadParameter(problem[1], param_hint=problem[0])
     terms = term_names(terms, "--with") if terms is not None else ()
     test = read_bundle(bundle)
-    if terms_the_test_cannot_carry(terms, test):
-        raise click.BadParameter(terms_the_test_cannot_carry(terms, test), param_hint="--with")
+    if terms_problem(terms, test):
+        raise click.BadParameter(terms_problem(terms, test), param_hint="--with")
     _check_priors(priors, test)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
                              ess_target=ess_target or ESS_TARGET, proposal=proposal, coordinates=coordinates,

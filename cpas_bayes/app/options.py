@@ -200,15 +200,19 @@ def term_names(value, param_hint):
     return names
 
 
-def terms_the_test_cannot_carry(names, test):
-    """The message refusing the terms of ``names`` that act on channels ``test`` lacks, or None."""
-    from cpas_bayes.stats.model_terms import applies
+def terms_problem(names, test):
+    """The message refusing terms ``names`` for ``test``, or None: terms acting on channels the test lacks, or
+    two terms that each bring their own error model."""
+    from cpas_bayes.stats.model_terms import EXTENSIONS, applies
 
     lacking = [n for n in names if not applies(n, test)]
-    if not lacking:
-        return None
-    return (f"{', '.join(lacking)} act{'s' if len(lacking) == 1 else ''} on load cells, and {test.name} has none: "
-            f"leave {'it' if len(lacking) == 1 else 'them'} out")
+    if lacking:
+        return (f"{', '.join(lacking)} act{'s' if len(lacking) == 1 else ''} on load cells, and {test.name} has "
+                f"none: leave {'it' if len(lacking) == 1 else 'them'} out")
+    own = [n for n in names if EXTENSIONS[n].brings_error_model()]
+    if len(own) > 1:
+        return f"{' and '.join(own)} each bring their own error model: give one of them"
+    return None
 
 
 def priors_option():

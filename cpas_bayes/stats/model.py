@@ -73,7 +73,7 @@ from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
 from cpas_bayes.stats.likelihood_kernel import whitened_residuals as fused_whitened_residuals
 from cpas_bayes.stats.observations import Observations
 from cpas_bayes.stats.distributions import TruncNormal
-from cpas_bayes.stats.model_parts import Context, Extension, Parameter, Prediction
+from cpas_bayes.stats.model_parts import Context, Parameter, Prediction, one_error_model
 from cpas_bayes.stats.priors import KindPriors, NuisancePriors, PriorSet
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -110,7 +110,7 @@ class TestModel:
         self.obs = obs
         self.decay = decay
         self.below_previous = below_previous
-        self.extensions = tuple(extensions)
+        self.extensions = one_error_model(extensions)
         self.kind_priors = kind_priors
         self.nuisance_priors = nuisance
         self.parachutes = test.parachutes
@@ -526,7 +526,7 @@ class TestModel:
     @property
     def replaces_error_model(self):
         """True when an extension brings its own error model (no per-channel log-likelihood then)."""
-        return any(type(ext).log_likelihood is not Extension.log_likelihood for ext in self.extensions)
+        return any(ext.brings_error_model() for ext in self.extensions)
 
     def log_likelihood(self, theta):
         """Total log-likelihood (B,), the sum of :meth:`pointwise_log_likelihood` over bins."""

@@ -68,6 +68,11 @@ class Extension:
     reads_air_data = False        # reads ρ, V, q̄, γ at the bins: a logger model then gives its walkers' (Context.air)
     needs_drag_area_rate = False  # reads Context.law: the model then gives the stage law's rate with its drag areas
 
+    @classmethod
+    def brings_error_model(cls):
+        """Whether the term replaces the independent errors with its own error model (a model takes one)."""
+        return cls.log_likelihood is not Extension.log_likelihood
+
     def parameters(self, model):
         return []
 
@@ -105,3 +110,13 @@ class Extension:
         """Joint log-likelihood (B,) when it is not the sum of the pointwise values (e.g. a
         marginalised discrepancy, whose pointwise values are leave-one-out conditionals), or None."""
         return None
+
+
+def one_error_model(extensions):
+    """``extensions`` as a tuple, refused when two of them bring their own error model: only the first would
+    be used, the other's parameters left to their prior."""
+    extensions = tuple(extensions)
+    own = [ext.name for ext in extensions if ext.brings_error_model()]
+    if len(own) > 1:
+        raise ValueError(f"{' and '.join(own)} each bring their own error model; a model takes one of them")
+    return extensions
