@@ -155,6 +155,8 @@ def bad_options(f):
         ("fit --with a load-cell term where there are none",
          ["fit", LOGGER_DROP, "--out", "OUT", "--with", "discrepancy,friction_drift"],
          "friction_drift acts on load cells, and SYN-logger-drop-3 has none: leave it out"),
+        ("fit --with a pasted list", fit + ["--with", ",".join(f"term{i}" for i in range(500))],
+         "unknown extension(s) term0, term1, term2 and 497 more;"),
         ("fit --with two error models", fit + ["--with", "discrepancy,correlated_noise"],
          "discrepancy and correlated_noise each bring their own error model: give one of them"),
         ("fit --max-steps below one chunk", fit + ["--max-steps", "100"], "--max-steps"),

@@ -189,9 +189,12 @@ def term_names(value, param_hint):
     from cpas_bayes.stats.model_terms import EXTENSIONS
 
     names = tuple(c.strip() for c in value.split(",") if c.strip())
-    unknown = [n for n in names if n not in EXTENSIONS]
+    unknown = list(dict.fromkeys(n for n in names if n not in EXTENSIONS))
     if unknown or not names:
-        raise click.BadParameter(f"unknown extension(s) {', '.join(unknown) or '(none given)'}"
+        # a few of the unknown names, each cut short: a pasted file must not fill the terminal
+        shown = ", ".join(n if len(n) <= 40 else n[:40] + "…" for n in unknown[:3]) + (
+            f" and {len(unknown) - 3} more" if len(unknown) > 3 else "")
+        raise click.BadParameter(f"unknown extension(s) {shown or '(none given)'}"
                                  f"{did_you_mean(unknown[0], EXTENSIONS) if unknown else ''}; use any of "
                                  f"{', '.join(EXTENSIONS)}", param_hint=param_hint)
     if len(set(names)) < len(names):
