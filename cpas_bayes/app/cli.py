@@ -300,7 +300,6 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.inference.fit_folder import fill_time_table, pairing_note, record_checks, write_fit_files
     from cpas_bayes.inference.predictive_checks import run_checks
     from cpas_bayes.outputs.fit_figures import write_fit_figures
-
     from cpas_bayes.stats.model_terms import make_extension
 
     problem = stop_problem(stop, ess_target, ensembles)
@@ -308,8 +307,9 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
         raise click.BadParameter(problem[1], param_hint=problem[0])
     terms = term_names(terms, "--with") if terms is not None else ()
     test = read_bundle(bundle)
-    if terms_problem(terms, test):
-        raise click.BadParameter(terms_problem(terms, test), param_hint="--with")
+    problem = terms_problem(terms, test)
+    if problem:
+        raise click.BadParameter(problem, param_hint="--with")
     _check_priors(priors, test)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
                              ess_target=ess_target or ESS_TARGET, proposal=proposal, coordinates=coordinates,

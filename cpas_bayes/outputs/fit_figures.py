@@ -19,6 +19,7 @@ BAND_DRAWS = 400
 CORNER_FIELDS = ("start", "n_p", "expopen", "ck", "tk", "eps")
 CORNER_UNITS = {"start": "s", "tk": "s"}
 TRACE_PARAMETERS = 6
+FIGURE_PARTS = ("draws", "checks")   # the figures of the posterior's draws; those of the predictive checks
 
 
 def band_draws(fit, n_draws, rng):
@@ -60,9 +61,6 @@ def _figure_task(job):
     from cpas_bayes.outputs.plots.fit import draw_figure
 
     return draw_figure(job)
-
-
-FIGURE_PARTS = ("draws", "checks")   # the figures of the posterior's draws; those of the predictive checks
 
 
 def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None, parts=FIGURE_PARTS):
