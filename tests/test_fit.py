@@ -178,3 +178,23 @@ def test_composite_cluster_fits_end_to_end_and_loses_to_individual_parachutes(dr
     diff = np.asarray(loo_composite.elpd_i.values).ravel() - np.asarray(loo_individual.elpd_i.values).ravel()
     se = np.sqrt(diff.size * np.var(diff, ddof=1))
     assert diff.sum() < -4 * se, (diff.sum(), se)
+
+
+def test_fit_with_the_discrepancy_runs_end_to_end_and_says_why_it_has_no_loo_pit(drogue_example, tmp_path, capsys):
+    """``cpas-bayes fit --with discrepancy``: the model carries the term (summary, DataTree), the checks and
+    every figure are written, and the LOO-PIT says in summary.json and its figure why it is not computed (the
+    discrepancy's likelihood joins each bin's channels) instead of failing the command."""
+    from cpas_bayes.app.cli import main
+    from cpas_bayes.inference.fit_folder import read_summary
+
+    bundle = next(p for p in example_bundles() if p.name.startswith("drogue"))
+    out = tmp_path / "fit"
+    code = main([str(a) for a in ("fit", bundle, "--out", out, "--ensembles", "2", "--ess-target", "100",
+                                  "--max-steps", "500", "--with", "discrepancy")])
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    assert "with discrepancy" in printed.out
+    summary = read_summary(out)
+    assert "discrepancy" in summary["model"] and "discrepancy_log_scale" in summary["nuisance"]
+    assert "joins the channels of each time bin" in summary["checks_not_computed"]["loo_pit"]
+    assert {"bands.png", "loo_pit.png", "ppc.png", "residuals.png", "trace.png"} <= {p.name for p in out.glob("*.png")}

@@ -269,6 +269,8 @@ def record_checks(fit, checks, out=None):
 
     diagnostics = {**fit.summary["diagnostics"], "per_parameter": fit.summary["diagnostics_per_parameter"]}
     fit.summary["warnings"] = fit_warnings(fit.model, fit.tree, diagnostics, checks.ppc.table)
+    if checks.loo_pit.not_computed:   # said where a reader of summary.json looks, not only on loo_pit.png
+        fit.summary["checks_not_computed"] = {"loo_pit": checks.loo_pit.not_computed}
     if out is not None:
         write_summary(out, fit.summary)
     return fit.summary["warnings"]
