@@ -429,3 +429,57 @@ def test_an_out_beside_the_bundle_still_works(tmp_path, capsys, example_dir):
     # a campaign's --out may sit in its folder beside the bundles, not in one of them
     assert check_outside_inputs(tmp_path / "out", [bundle]) == tmp_path / "out"
     shutil.rmtree(out)
+
+
+# ---------------------------------------------------------------------------
+# a clipped accelerometer
+
+
+def test_a_flat_top_at_the_largest_reading_is_found_and_noise_or_rest_is_not():
+    from cpas_bayes.data.bundle_notes import clipped_run
+
+    t = np.arange(40) * 0.05
+    rng = np.random.default_rng(0)
+    g = 1.0 + 6.0 * np.exp(-0.5 * ((t - 1.0) / 0.2) ** 2) + 0.01 * rng.standard_normal(t.size)
+    assert clipped_run(t, g) is None                                   # a peak with noise: no repeats
+    clipped = np.minimum(g, 5.0)
+    value, n, t0, t1 = clipped_run(t, clipped)
+    flat = np.flatnonzero(clipped == 5.0)
+    assert (value, n, t0, t1) == (5.0, flat.size, t[flat[0]], t[flat[-1]]) and n >= 3
+    two = g.copy()
+    two[[19, 20]] = g.max() + 1.0                                     # two equal readings: chance, not a clip
+    assert clipped_run(t, two) is None
+    rest = np.round(1.0 + 0.01 * rng.standard_normal(t.size), 1)        # a coarse sensor at rest repeats 1.0 g
+    assert clipped_run(t, rest) is None
+    holed = clipped.copy()
+    holed[flat[1]] = np.nan                                            # a blank reading inside the top
+    assert clipped_run(t, holed)[1] == flat.size - 1
+
+
+def test_validate_reduce_and_the_fit_health_say_the_accelerometer_clipped(tmp_path, capsys):
+    """The shipped logger example with its readings above 7 g set to 7 g (8 readings, as a ±7 g sensor reports):
+    ``validate``, ``reduce`` and the fit's health warnings name the readings to blank; the example itself has no
+    such warning."""
+    from pathlib import Path
+
+    from cpas_bayes.data.bundle_notes import clipping_warnings
+    from cpas_bayes.data.reduction import reduce_test
+    from cpas_bayes.inference.fit_health import clipped_accelerometer_warnings
+
+    folder = tmp_path / "clipped"
+    shutil.copytree(Path(__file__).parent.parent / "docs" / "examples" / "logger-drop", folder)
+    lines = (folder / "data.csv").read_text().splitlines()
+    column = lines[0].split(",").index("G")
+    for i, line in enumerate(lines[1:], 1):
+        cells = line.split(",")
+        if cells[column] and float(cells[column]) > 7.0:
+            cells[column] = "7.0"
+        lines[i] = ",".join(cells)
+    (folder / "data.csv").write_text("\n".join(lines) + "\n")
+    assert main(["validate", str(folder)]) == 0
+    said = capsys.readouterr().out
+    assert "G holds its largest reading, 7 g, for 8 readings in a row" in said and "Blank those G cells" in said
+    test = read_bundle(folder)
+    assert reduce_test(test).warnings == clipping_warnings(test) and len(clipping_warnings(test)) == 1
+    assert [(w["code"], w["parameter"]) for w in clipped_accelerometer_warnings(test)] == [("clipped_accelerometer", "G")]
+    assert clipping_warnings(read_bundle(Path(__file__).parent.parent / "docs" / "examples" / "logger-drop")) == []

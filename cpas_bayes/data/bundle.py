@@ -33,9 +33,8 @@ from cpas_bayes.core.inputs import MAX_TEXT, check_keys, check_name, check_text,
 from cpas_bayes.core.units import UNIT_SYSTEMS, UnitSystem, unit_system
 from cpas_bayes.data import limits
 from cpas_bayes.data.air_data import AirDataSpec
-from cpas_bayes.data.bundle_air import AIR_TABLES, LOGGER_QUANTITY, air_summary, check_measured_columns, \
-    logger_bundle, logger_columns, parachute_channels, parse_air_tables, refuse_air_tables, refuse_conflicts, \
-    sigma_channels
+from cpas_bayes.data.bundle_air import AIR_TABLES, LOGGER_QUANTITY, check_measured_columns, logger_bundle, \
+    logger_columns, parachute_channels, parse_air_tables, refuse_air_tables, refuse_conflicts, sigma_channels
 from cpas_bayes.data.bundle_csv import CSV_NAME, TOML_NAME, csv_header, numeric_column, read_csv, sigma_column
 from cpas_bayes.data.limits import MAX_COLUMN_NAME, check_column, check_record, check_value
 
@@ -571,6 +570,8 @@ def with_data(test: FlightTest, data: pd.DataFrame) -> FlightTest:
 
 def summary(test: FlightTest) -> dict:
     """What ``cpas-bayes validate`` prints: parachutes, stages, duration, rate, channels."""
+    from cpas_bayes.data.bundle_notes import summary_notes
+
     return {
         "name": test.name,
         "phase": test.phase,
@@ -587,7 +588,7 @@ def summary(test: FlightTest) -> dict:
             for p in test.parachutes
         ],
         "channels": test.channels,
-        **(air_summary(test) if test.air_data is not None else {}),
+        **summary_notes(test),
     }
 
 

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cpas_bayes.data.bundle_notes import clipping_warnings
 from cpas_bayes.physics.inflation import stage_tag
 
 EDGE_SHARE = 0.05          # share of draws within EDGE_BAND posterior sd of a bound that counts as piled
@@ -210,6 +211,11 @@ def convergence_warnings(diagnostics):
     return out   # an ensemble at its step limit with R-hat and ESS on target has what its intervals need
 
 
+def clipped_accelerometer_warnings(test):
+    """An accelerometer that holds its largest reading several readings in a row (data.bundle_notes)."""
+    return [warning("clipped_accelerometer", text, "G") for text in clipping_warnings(test)]
+
+
 def fit_warnings(model, tree, diagnostics, ppc_table=None):
     """Every health warning of a fit: ``model`` (TestModel), its DataTree and convergence diagnostics
     (:func:`cpas_bayes.inference.fit_folder.convergence`, with ``per_parameter``); PPC warnings only
@@ -224,4 +230,5 @@ def fit_warnings(model, tree, diagnostics, ppc_table=None):
     out += timing_warnings(model, draws, float(native[-1]))
     out += sample_rate_warnings(model, draws, float(np.median(np.diff(native))))
     out += convergence_warnings(diagnostics)
+    out += clipped_accelerometer_warnings(model.test)
     return out
