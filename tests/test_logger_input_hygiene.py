@@ -454,6 +454,21 @@ def test_a_flat_top_at_the_largest_reading_is_found_and_noise_or_rest_is_not():
     holed = clipped.copy()
     holed[flat[1]] = np.nan                                            # a blank reading inside the top
     assert clipped_run(t, holed)[1] == flat.size - 1
+    assert clipped_run(t, -clipped) == (-5.0, n, t0, t1)               # an axis clips at its negative end too
+
+
+def test_a_body_axis_that_clipped_is_named():
+    from cpas_bayes.data.bundle_notes import clipping_warnings
+    from cpas_bayes.data.synth_logger import synthesize_logger
+
+    test, _ = synthesize_logger("logger-attitude", 2)
+    assert "G" not in test.data and clipping_warnings(test) == []
+    axis = test.data["accel_x"].to_numpy()
+    scale = np.nanquantile(np.abs(axis), 0.98)       # about 8 of its 400 readings at the full scale
+    assert scale >= 2.0
+    test.data["accel_x"] = np.clip(axis, -scale, scale)
+    said = clipping_warnings(test)
+    assert len(said) == 1 and said[0].startswith("data.csv accel_x holds its") and "rows of the three axes" in said[0]
 
 
 def test_validate_reduce_and_the_fit_health_say_the_accelerometer_clipped(tmp_path, capsys):

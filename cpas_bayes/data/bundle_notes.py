@@ -17,35 +17,45 @@ CLIP_RUN = 3          # readings holding the record's largest value in a row: no
 CLIP_FLOOR_G = 2.0    # only above this: a sensor at rest reads about 1 g, and a coarse one repeats it
 
 
-def clipped_run(time, g):
-    """(value, n, t_start, t_end) of the longest run of readings equal to the largest reading ``g`` (in g), when
-    it is at least :data:`CLIP_RUN` long and above :data:`CLIP_FLOOR_G`; else None. Blank readings are skipped."""
-    time, g = np.asarray(time, float), np.asarray(g, float)
-    keep = np.isfinite(g)
-    time, g = time[keep], g[keep]
-    if g.size < CLIP_RUN or g.max() < CLIP_FLOOR_G:
-        return None
-    at_top = np.concatenate([[False], g == g.max(), [False]])
-    edges = np.flatnonzero(np.diff(at_top.astype(int)))
+def _longest_run_at(time, g, value):
+    """(n, t_start, t_end) of the longest run of readings equal to ``value``."""
+    at = np.concatenate([[False], g == value, [False]])
+    edges = np.flatnonzero(np.diff(at.astype(int)))
     starts, ends = edges[::2], edges[1::2]
     longest = int(np.argmax(ends - starts))
     a, b = starts[longest], ends[longest]
-    if b - a < CLIP_RUN:
+    return int(b - a), float(time[a]), float(time[b - 1])
+
+
+def clipped_run(time, g):
+    """(value, n, t_start, t_end) of the longest run of readings equal to the largest or the smallest reading
+    ``g`` (in g; an axis clips at both ends of its scale), when it is at least :data:`CLIP_RUN` long and that
+    value at least :data:`CLIP_FLOOR_G` in size; else None. Blank readings are skipped."""
+    time, g = np.asarray(time, float), np.asarray(g, float)
+    keep = np.isfinite(g)
+    time, g = time[keep], g[keep]
+    if g.size < CLIP_RUN:
         return None
-    return float(g.max()), int(b - a), float(time[a]), float(time[b - 1])
+    runs = [(value, *_longest_run_at(time, g, value)) for value in (g.max(), g.min())
+            if abs(value) >= CLIP_FLOOR_G]
+    runs = [r for r in runs if r[1] >= CLIP_RUN]
+    return max(runs, key=lambda r: r[1]) if runs else None
 
 
 def clipping_warnings(test):
-    """The warning of a bundle whose accelerometer (``G``) holds its largest reading for several readings."""
-    if "G" not in test.data:
-        return []
-    found = clipped_run(test.data["time"], test.data["G"])
-    if found is None:
-        return []
-    value, n, t0, t1 = found
-    return [f"data.csv G holds its largest reading, {value:.6g} g, for {n} readings in a row ({t0:.3f}-{t1:.3f} s): "
-            "the accelerometer probably clipped at its full scale, and a fit would take that flat top for the peak. "
-            "Blank those G cells to leave them out (the fit then draws the peak from the rest of the fill)"]
+    """The warnings of a bundle whose accelerometer (``G``, or a body axis) holds its largest (or smallest)
+    reading for several readings in a row."""
+    out = []
+    for column in ("G", "accel_x", "accel_y", "accel_z"):
+        found = clipped_run(test.data["time"], test.data[column]) if column in test.data else None
+        if found is not None:
+            value, n, t0, t1 = found
+            out.append(f"data.csv {column} holds its {'largest' if value > 0 else 'smallest'} reading, {value:.6g} g, "
+                       f"for {n} readings in a row ({t0:.3f}-{t1:.3f} s): the accelerometer probably clipped at its "
+                       "full scale, and a fit would take that flat top for the peak. Blank those "
+                       f"{'G cells' if column == 'G' else 'rows of the three axes'} to leave them out (the fit then "
+                       "draws the peak from the rest of the fill)")
+    return out
 
 
 def summary_notes(test):
