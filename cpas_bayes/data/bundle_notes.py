@@ -13,7 +13,7 @@ import numpy as np
 
 from cpas_bayes.data.bundle_air import air_summary
 
-CLIP_RUN = 3          # readings holding the record's largest value in a row: noise repeats a value once at most
+CLIP_RUN = 3          # readings holding the record's largest value in a row: a noisy peak seldom repeats its top twice
 CLIP_FLOOR_G = 2.0    # only above this: a sensor at rest reads about 1 g, and a coarse one repeats it
 
 
