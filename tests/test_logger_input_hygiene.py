@@ -469,6 +469,10 @@ def test_a_body_axis_that_clipped_is_named():
     test.data["accel_x"] = np.clip(axis, -scale, scale)
     said = clipping_warnings(test)
     assert len(said) == 1 and said[0].startswith("data.csv accel_x holds its") and "rows of the three axes" in said[0]
+    from cpas_bayes.inference.fit_health import clipped_accelerometer_warnings
+
+    assert [(w["code"], w["parameter"], w["message"]) for w in clipped_accelerometer_warnings(test)] == [
+        ("clipped_accelerometer", "accel_x", said[0])]          # the fit's warning names the axis, not G
 
 
 def test_validate_reduce_and_the_fit_health_say_the_accelerometer_clipped(tmp_path, capsys):

@@ -206,13 +206,14 @@ def term_names(value, param_hint):
 def terms_problem(names, test):
     """The message refusing terms ``names`` for ``test``, or None: terms acting on channels the test lacks, or
     two terms that each bring their own error model."""
+    from cpas_bayes.stats.model_parts import own_error_models
     from cpas_bayes.stats.model_terms import EXTENSIONS, applies
 
     lacking = [n for n in names if not applies(n, test)]
     if lacking:
         return (f"{', '.join(lacking)} act{'s' if len(lacking) == 1 else ''} on load cells, and {test.name} has "
                 f"none: leave {'it' if len(lacking) == 1 else 'them'} out")
-    own = [n for n in names if EXTENSIONS[n].brings_error_model()]
+    own = own_error_models(EXTENSIONS[n] for n in names)
     if len(own) > 1:
         return f"{' and '.join(own)} each bring their own error model: give one of them"
     return None

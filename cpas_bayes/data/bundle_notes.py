@@ -42,20 +42,25 @@ def clipped_run(time, g):
     return max(runs, key=lambda r: r[1]) if runs else None
 
 
-def clipping_warnings(test):
-    """The warnings of a bundle whose accelerometer (``G``, or a body axis) holds its largest (or smallest)
-    reading for several readings in a row."""
+def clipped_channels(test):
+    """[(column, warning)] of each accelerometer column (``G``, or a body axis) that holds its largest (or
+    smallest) reading for several readings in a row."""
     out = []
     for column in ("G", "accel_x", "accel_y", "accel_z"):
         found = clipped_run(test.data["time"], test.data[column]) if column in test.data else None
         if found is not None:
             value, n, t0, t1 = found
-            out.append(f"data.csv {column} holds its {'largest' if value > 0 else 'smallest'} reading, {value:.6g} g, "
-                       f"for {n} readings in a row ({t0:.3f}-{t1:.3f} s): the accelerometer probably clipped at its "
-                       "full scale, and a fit would take that flat top for the peak. Blank those "
-                       f"{'G cells' if column == 'G' else 'rows of the three axes'} to leave them out (the fit then "
-                       "draws the peak from the rest of the fill)")
+            out.append((column, f"data.csv {column} holds its {'largest' if value > 0 else 'smallest'} reading, "
+                                f"{value:.6g} g, for {n} readings in a row ({t0:.3f}-{t1:.3f} s): the accelerometer "
+                                "probably clipped at its full scale, and a fit would take that flat top for the "
+                                f"peak. Blank those {'G cells' if column == 'G' else 'rows of the three axes'} to "
+                                "leave them out (the fit then draws the peak from the rest of the fill)"))
     return out
+
+
+def clipping_warnings(test):
+    """The warnings of :func:`clipped_channels`, as ``validate`` and ``reduce`` say them."""
+    return [text for _, text in clipped_channels(test)]
 
 
 def summary_notes(test):

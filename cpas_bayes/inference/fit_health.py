@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cpas_bayes.data.bundle_notes import clipping_warnings
+from cpas_bayes.data.bundle_notes import clipped_channels
 from cpas_bayes.physics.inflation import stage_tag
 
 EDGE_SHARE = 0.05          # share of draws within EDGE_BAND posterior sd of a bound that counts as piled
@@ -212,8 +212,9 @@ def convergence_warnings(diagnostics):
 
 
 def clipped_accelerometer_warnings(test):
-    """An accelerometer that holds its largest reading several readings in a row (data.bundle_notes)."""
-    return [warning("clipped_accelerometer", text, "G") for text in clipping_warnings(test)]
+    """An accelerometer column that holds its largest reading several readings in a row (data.bundle_notes),
+    the column named as the warning's parameter."""
+    return [warning("clipped_accelerometer", text, column) for column, text in clipped_channels(test)]
 
 
 def fit_warnings(model, tree, diagnostics, ppc_table=None):

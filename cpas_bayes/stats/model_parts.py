@@ -112,11 +112,16 @@ class Extension:
         return None
 
 
+def own_error_models(terms):
+    """Names of ``terms`` (extensions, or their classes) that bring their own error model."""
+    return [term.name for term in terms if term.brings_error_model()]
+
+
 def one_error_model(extensions):
     """``extensions`` as a tuple, refused when two of them bring their own error model: only the first would
     be used, the other's parameters left to their prior."""
     extensions = tuple(extensions)
-    own = [ext.name for ext in extensions if ext.brings_error_model()]
+    own = own_error_models(extensions)
     if len(own) > 1:
         raise ValueError(f"{' and '.join(own)} each bring their own error model; a model takes one of them")
     return extensions
