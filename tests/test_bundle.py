@@ -348,7 +348,10 @@ ISSUE_18 = [
     ("qbar sigma of 1e300", lambda f: f.set_cell(32, "qbar_sigma", "1e300"), "data.csv",
      "row 32, column 'qbar_sigma'", "a 1-sigma cannot exceed"),
     ("negative airspeed", lambda f: f.set_cell(33, "airspeed", "-412"), "data.csv", "row 33, column 'airspeed'",
-     "airspeed = -412 ft/s is outside 0 …"),
+     "airspeed = -412.0 ≤ 0, where fill times are computed as n·D_o / airspeed"),
+    # a zero airspeed passed the range check and ended the fit's MAP search with a ZeroDivisionError
+    ("zero airspeed", lambda f: f.set_cell(33, "airspeed", "0"), "data.csv", "row 33, column 'airspeed'",
+     "airspeed = 0.0 ≤ 0, where fill times"),
     ("density in lbm/ft³", lambda f: f.set_cell(34, "density", "0.0765"), "data.csv", "row 34, column 'density'",
      "not lbm/ft³"),
     ("load of 1e300", lambda f: f.set_cell(35, "F_D6", "1e300"), "data.csv", "row 35, column 'F_D6'",

@@ -502,3 +502,39 @@ def test_validate_reduce_and_the_fit_health_say_the_accelerometer_clipped(tmp_pa
     assert reduce_test(test).warnings == clipping_warnings(test) and len(clipping_warnings(test)) == 1
     assert [(w["code"], w["parameter"]) for w in clipped_accelerometer_warnings(test)] == [("clipped_accelerometer", "G")]
     assert clipping_warnings(read_bundle(Path(__file__).parent.parent / "docs" / "examples" / "logger-drop")) == []
+
+
+# a dead load cell
+def test_a_dead_load_cell_is_said_by_validate_reduce_and_the_fit_health(example_dir, capsys):
+    """One Drogue's load cell zeroed (an unplugged channel), or reading its stated noise alone: ``validate``,
+    ``reduce`` and the fit's health say so, naming the column and the fix; the example itself, whose cells
+    span hundreds of sigma, has no such warning. Before, the zeroed cell fitted with error multipliers of 10
+    and eight parameters at their priors' bounds, and nothing named the cell."""
+    from cpas_bayes.data.bundle_notes import dead_load_cells
+    from cpas_bayes.data.reduction import reduce_test
+    from cpas_bayes.inference.fit_health import dead_load_cell_warnings
+
+    folder = example_dir("drogue-clean", "dead-cell")
+    assert dead_load_cells(read_bundle(folder)) == []
+    lines = (folder / "data.csv").read_text().splitlines()
+    column = lines[0].split(",").index("F_D3")
+    for i, line in enumerate(lines[1:], 1):
+        cells = line.split(",")
+        cells[column] = "0"
+        lines[i] = ",".join(cells)
+    (folder / "data.csv").write_text("\n".join(lines) + "\n")
+    assert main(["validate", str(folder)]) == 0
+    said = capsys.readouterr().out
+    assert "F_D3, the load cell of parachute 'D3', stays within its noise" in said
+    assert "its readings span 0 lbf against a stated 1-sigma of 144.6 lbf" in said   # the sigma column's median
+    assert "remove the load_cell of every parachute" in said
+    test = read_bundle(folder)
+    assert reduce_test(test).warnings == [text for _, text in dead_load_cells(test)]
+    assert [(w["code"], w["parameter"]) for w in dead_load_cell_warnings(test)] == [("dead_load_cell", "F_D3")]
+    # noise alone (the stated 1-sigma, Gaussian) is as dead as zeros; a tenth of the load is not
+    rng = np.random.default_rng(0)
+    sigma = np.asarray(test.data["F_D3_sigma"], float)
+    test.data["F_D3"] = rng.normal(0.0, sigma)
+    assert [c for c, _ in dead_load_cells(test)] == ["F_D3"]
+    test.data["F_D3"] = 0.1 * np.asarray(test.data["F_D6"], float)
+    assert dead_load_cells(test) == []

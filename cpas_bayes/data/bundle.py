@@ -529,11 +529,11 @@ def read_bundle(folder) -> FlightTest:
     check_measured_columns(raw.columns, csv_path)
     for col in ("G", "qbar", "airspeed", "gamma"):
         columns[col] = need(col, "required by the bundle format", None)
-        if col == "qbar" and (columns[col] <= 0).any():
-            qbar = columns[col]
-            i = int(np.flatnonzero(qbar <= 0)[0])
-            raise BundleError(csv_path, f"row {i + 2}, column 'qbar'",
-                              f"qbar = {qbar[i]} ≤ 0, where drag areas are computed as load / qbar",
+        if col in limits.DIVISORS and (columns[col] <= 0).any():
+            values = columns[col]
+            i = int(np.flatnonzero(values <= 0)[0])
+            raise BundleError(csv_path, f"row {i + 2}, column '{col}'",
+                              f"{col} = {values[i]} ≤ 0, where {limits.DIVISORS[col]}",
                               "trim the rows before the vehicle has airspeed, or repair the value")
         check_column(columns[col], limits.CHANNELS[col], units, csv_path, col)
     for col in ("density", "altitude"):

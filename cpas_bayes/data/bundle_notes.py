@@ -5,6 +5,11 @@ A clipped accelerometer: a logger's MEMS sensor saturates at its full scale, oft
 then reports the same full-scale value sample after sample. A fit would read that flat top as the peak and
 bend the inflation to it. Blank readings are left out of the fit (the peak is then the model's), so the warning
 names the readings to blank.
+
+A dead load cell: a channel unplugged, or its bridge not excited, reads a constant or its own noise while the
+canopy carries thousands of newtons. A fit reads it as a canopy carrying no load and bends every parameter to
+that (on the two-Drogue example with one cell zeroed: error multipliers 9.6 and 10, eight parameters against
+their priors' bounds, no word of the cause).
 """
 
 from __future__ import annotations
@@ -15,6 +20,9 @@ from cpas_bayes.data.bundle_air import air_summary
 
 CLIP_RUN = 3          # readings holding the record's largest value in a row: a noisy peak seldom repeats its top twice
 CLIP_FLOOR_G = 2.0    # only above this: a sensor at rest reads about 1 g, and a coarse one repeats it
+# a load cell whose readings span less than this many of its stated 1-sigma reads noise alone: Gaussian noise
+# over 1,000 readings spans about 6.5 sigma, and a riser's load in a deployment is hundreds of sigma
+DEAD_SPAN_SIGMAS = 10.0
 
 
 def _longest_run_at(time, g, value):
@@ -63,8 +71,40 @@ def clipping_warnings(test):
     return [text for _, text in clipped_channels(test)]
 
 
+def dead_load_cells(test):
+    """[(column, warning)] of each parachute's load cell whose readings stay within its noise over the whole
+    record: they span less than :data:`DEAD_SPAN_SIGMAS` times its median stated 1-sigma, or nothing at all."""
+    out = []
+    units = test.units
+    for p in test.parachutes:
+        column = p.load_column
+        if column is None or column not in test.data:
+            continue
+        values = np.asarray(test.data[column], float)
+        values = values[np.isfinite(values)]
+        sigma_column = f"{column}_sigma"
+        sigma = float(np.nanmedian(test.data[sigma_column])) if sigma_column in test.data else 0.0
+        span = float(np.ptp(values)) if values.size else 0.0
+        if values.size and (span == 0.0 or span < DEAD_SPAN_SIGMAS * sigma):
+            force = units.label("force")
+            noise = f" against a stated 1-sigma of {units.from_si(sigma, 'force'):.4g} {force}" if sigma else ""
+            out.append((column, f"data.csv {p.load_cell}, the load cell of parachute '{p.id}', stays within its "
+                                f"noise over the whole record (its readings span {units.from_si(span, 'force'):.4g} "
+                                f"{force}{noise}): a dead or unplugged channel, which a fit reads as a canopy "
+                                f"carrying no load. Repair the column, or remove the load_cell of "
+                                f"{'every parachute' if len(test.parachutes) > 1 else 'the parachute'} in "
+                                "test.toml (a cluster is reduced from all its cells or none; without them the "
+                                "loads come from the accelerometer alone)"))
+    return out
+
+
+def reading_warnings(test):
+    """What ``validate`` and ``reduce`` say of a bundle's readings: a clipped accelerometer, a dead load cell."""
+    return [text for _, text in clipped_channels(test) + dead_load_cells(test)]
+
+
 def summary_notes(test):
     """``validate``'s summary entries beyond the layout: ``air_data`` (logger bundles) and ``warnings``."""
     out = dict(air_summary(test)) if test.air_data is not None else {}
-    warnings = list(out.pop("warnings", [])) + clipping_warnings(test)
+    warnings = list(out.pop("warnings", [])) + reading_warnings(test)
     return {**out, **({"warnings": warnings} if warnings else {})}

@@ -61,6 +61,10 @@ class Plausible:
 
 _UNITS_HINT = "US bundles are in lbf, ft, ft², ft/s, lbf/ft², slug/ft³; SI bundles in N, m, m², m/s, Pa, kg/m³"
 
+# Channels the package divides by: a value ≤ 0 is refused before the range check, naming the division.
+DIVISORS = {"qbar": "drag areas are computed as load / qbar",
+            "airspeed": "fill times are computed as n·D_o / airspeed"}
+
 # data.csv channels, by canonical column ("F" and "theta": every parachute's load cell and fly-out angle).
 CHANNELS = {
     "G": Plausible(None, -50.0, 50.0, "parachute deployment loads stay below ~20 g; beyond 50 g it is not a "

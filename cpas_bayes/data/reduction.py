@@ -204,11 +204,11 @@ class Reduction:
     @property
     def warnings(self):
         """What to know before trusting the numbers: a logger bundle's trajectory that misses the receiver, an
-        accelerometer that clipped."""
-        from cpas_bayes.data.bundle_notes import clipping_warnings
+        accelerometer that clipped, a dead load cell."""
+        from cpas_bayes.data.bundle_notes import reading_warnings
 
         said = self.air_estimate.misfit_warning() if self.air_estimate is not None else None
-        return ([said] if said else []) + clipping_warnings(self.test)
+        return ([said] if said else []) + reading_warnings(self.test)
 
     def to_json(self):
         u = self.test.units

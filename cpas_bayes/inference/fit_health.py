@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cpas_bayes.data.bundle_notes import clipped_channels
+from cpas_bayes.data.bundle_notes import clipped_channels, dead_load_cells
 from cpas_bayes.physics.inflation import stage_tag
 
 EDGE_SHARE = 0.05          # share of draws within EDGE_BAND posterior sd of a bound that counts as piled
@@ -217,6 +217,11 @@ def clipped_accelerometer_warnings(test):
     return [warning("clipped_accelerometer", text, column) for column, text in clipped_channels(test)]
 
 
+def dead_load_cell_warnings(test):
+    """A load cell that reads its noise alone (data.bundle_notes), the cell's column named as the parameter."""
+    return [warning("dead_load_cell", text, column) for column, text in dead_load_cells(test)]
+
+
 def fit_warnings(model, tree, diagnostics, ppc_table=None):
     """Every health warning of a fit: ``model`` (TestModel), its DataTree and convergence diagnostics
     (:func:`cpas_bayes.inference.fit_folder.convergence`, with ``per_parameter``); PPC warnings only
@@ -232,4 +237,5 @@ def fit_warnings(model, tree, diagnostics, ppc_table=None):
     out += sample_rate_warnings(model, draws, float(np.median(np.diff(native))))
     out += convergence_warnings(diagnostics)
     out += clipped_accelerometer_warnings(model.test)
+    out += dead_load_cell_warnings(model.test)
     return out
