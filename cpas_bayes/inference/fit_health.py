@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cpas_bayes.data.bundle_notes import clipped_channels, dead_load_cells
+from cpas_bayes.data.bundle_notes import clipped_channels, dead_load_cells, load_before_first_stage
 from cpas_bayes.physics.inflation import stage_tag
 
 EDGE_SHARE = 0.05          # share of draws within EDGE_BAND posterior sd of a bound that counts as piled
@@ -222,6 +222,13 @@ def dead_load_cell_warnings(test):
     return [warning("dead_load_cell", text, column) for column, text in dead_load_cells(test)]
 
 
+def early_load_warnings(test):
+    """The accelerometer's load rising before the first stated stage start (data.bundle_notes): stage starts on
+    another time base than the readings."""
+    said = load_before_first_stage(test)
+    return [warning("load_before_first_stage", said)] if said else []
+
+
 def fit_warnings(model, tree, diagnostics, ppc_table=None):
     """Every health warning of a fit: ``model`` (TestModel), its DataTree and convergence diagnostics
     (:func:`cpas_bayes.inference.fit_folder.convergence`, with ``per_parameter``); PPC warnings only
@@ -238,4 +245,5 @@ def fit_warnings(model, tree, diagnostics, ppc_table=None):
     out += convergence_warnings(diagnostics)
     out += clipped_accelerometer_warnings(model.test)
     out += dead_load_cell_warnings(model.test)
+    out += early_load_warnings(model.test)
     return out
