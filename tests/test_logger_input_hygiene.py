@@ -469,9 +469,9 @@ def test_a_body_axis_that_clipped_is_named():
     test.data["accel_x"] = np.clip(axis, -scale, scale)
     said = clipping_warnings(test)
     assert len(said) == 1 and said[0].startswith("data.csv accel_x holds its") and "rows of the three axes" in said[0]
-    from cpas_bayes.inference.fit_health import clipped_accelerometer_warnings
+    from cpas_bayes.inference.fit_health import reading_health_warnings
 
-    assert [(w["code"], w["parameter"], w["message"]) for w in clipped_accelerometer_warnings(test)] == [
+    assert [(w["code"], w["parameter"], w["message"]) for w in reading_health_warnings(test)] == [
         ("clipped_accelerometer", "accel_x", said[0])]          # the fit's warning names the axis, not G
 
 
@@ -483,7 +483,7 @@ def test_validate_reduce_and_the_fit_health_say_the_accelerometer_clipped(tmp_pa
 
     from cpas_bayes.data.bundle_notes import clipping_warnings
     from cpas_bayes.data.reduction import reduce_test
-    from cpas_bayes.inference.fit_health import clipped_accelerometer_warnings
+    from cpas_bayes.inference.fit_health import reading_health_warnings
 
     folder = tmp_path / "clipped"
     shutil.copytree(Path(__file__).parent.parent / "docs" / "examples" / "logger-drop", folder)
@@ -500,7 +500,7 @@ def test_validate_reduce_and_the_fit_health_say_the_accelerometer_clipped(tmp_pa
     assert "G holds its largest reading, 7 g, for 8 readings in a row" in said and "Blank those G cells" in said
     test = read_bundle(folder)
     assert reduce_test(test).warnings == clipping_warnings(test) and len(clipping_warnings(test)) == 1
-    assert [(w["code"], w["parameter"]) for w in clipped_accelerometer_warnings(test)] == [("clipped_accelerometer", "G")]
+    assert [(w["code"], w["parameter"]) for w in reading_health_warnings(test)] == [("clipped_accelerometer", "G")]
     assert clipping_warnings(read_bundle(Path(__file__).parent.parent / "docs" / "examples" / "logger-drop")) == []
 
 
@@ -512,7 +512,7 @@ def test_a_dead_load_cell_is_said_by_validate_reduce_and_the_fit_health(example_
     and eight parameters at their priors' bounds, and nothing named the cell."""
     from cpas_bayes.data.bundle_notes import dead_load_cells
     from cpas_bayes.data.reduction import reduce_test
-    from cpas_bayes.inference.fit_health import dead_load_cell_warnings
+    from cpas_bayes.inference.fit_health import reading_health_warnings
 
     folder = example_dir("drogue-clean", "dead-cell")
     assert dead_load_cells(read_bundle(folder)) == []
@@ -530,7 +530,7 @@ def test_a_dead_load_cell_is_said_by_validate_reduce_and_the_fit_health(example_
     assert "remove the load_cell of every parachute" in said
     test = read_bundle(folder)
     assert reduce_test(test).warnings == [text for _, text in dead_load_cells(test)]
-    assert [(w["code"], w["parameter"]) for w in dead_load_cell_warnings(test)] == [("dead_load_cell", "F_D3")]
+    assert [(w["code"], w["parameter"]) for w in reading_health_warnings(test)] == [("dead_load_cell", "F_D3")]
     # noise alone (the stated 1-sigma, Gaussian) is as dead as zeros; a tenth of the load is not
     rng = np.random.default_rng(0)
     sigma = np.asarray(test.data["F_D3_sigma"], float)
@@ -551,7 +551,7 @@ def test_a_load_before_the_first_stage_start_is_said(example_dir, capsys):
 
     from cpas_bayes.data.bundle_notes import load_before_first_stage
     from cpas_bayes.data.reduction import reduce_test
-    from cpas_bayes.inference.fit_health import early_load_warnings
+    from cpas_bayes.inference.fit_health import reading_health_warnings
 
     folder = example_dir("drogue-clean", "shifted")
     assert load_before_first_stage(read_bundle(folder)) is None
@@ -568,7 +568,7 @@ def test_a_load_before_the_first_stage_start_is_said(example_dir, capsys):
     assert "on the time base of data.csv's time column?" in said
     test = read_bundle(folder)
     assert load_before_first_stage(test) in reduce_test(test).warnings
-    assert [w["code"] for w in early_load_warnings(test)] == ["load_before_first_stage"]
+    assert [w["code"] for w in reading_health_warnings(test)] == ["load_before_first_stage"]
 
     logger = Path(__file__).parent.parent / "docs" / "examples" / "logger-drop"
     assert load_before_first_stage(read_bundle(logger)) is None
@@ -591,3 +591,28 @@ def test_synthetic_tests_get_no_reading_warnings(scenario, effect):
     for seed in (0, 1):
         test, _ = synthesize(scenario, effect, seed)
         assert reading_warnings(test) == [], (scenario, effect, seed)
+
+
+@pytest.mark.parametrize("column, factor, what", [("qbar", 0.04788, "a US qbar written in kPa"),
+                                                  ("airspeed", 0.5925, "a US airspeed written in knots"),
+                                                  ("airspeed", 0.84, "an equivalent airspeed at 11,700 ft")])
+def test_air_data_in_another_unit_is_said(example_dir, capsys, column, factor, what):
+    """The Main example with one air-data channel in another unit passes every range check; ``validate``, ``reduce``
+    and the fit's health say that qbar is not ½·density·airspeed² and name the units to check. The examples
+    (ratio 1.000) are silent, and so is a sensor error of 10 %."""
+    from cpas_bayes.data.bundle_notes import air_data_mismatch
+    from cpas_bayes.data.reduction import reduce_test
+    from cpas_bayes.inference.fit_health import reading_health_warnings
+
+    test = read_bundle(example_dir("main-clean", "air"))
+    assert air_data_mismatch(test) is None
+    test.data["qbar"] = 1.1 * np.asarray(test.data["qbar"], float)
+    assert air_data_mismatch(test) is None
+    test.data["qbar"] = np.asarray(test.data["qbar"], float) / 1.1
+    test.data[column] = factor * np.asarray(test.data[column], float)
+    said = air_data_mismatch(test)
+    ratio = 1 / factor if column == "qbar" else factor ** 2
+    assert said is not None and said.startswith(f"data.csv qbar is {1 / ratio:.3g}× ½·density·airspeed²"), what
+    assert "Check the units of qbar, density and airspeed against the bundle's units (US)" in said
+    assert said in reduce_test(test).warnings
+    assert [w["code"] for w in reading_health_warnings(test)] == ["air_data_units"]

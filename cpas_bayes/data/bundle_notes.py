@@ -15,6 +15,10 @@ A load before the first stage: stage starts written on another time base than th
 begins 5 s earlier than the clock the starts were read from) put the canopies' loads seconds before any stage
 starts. The starts' priors (1-sigma 0.1 s) then hold the fill where no load is: the two-Drogue example so
 shifted ran to its 20,000-step cap, R-hat 1.7, error multipliers of 9.4 and 9.9, and nothing said why.
+
+Air data in another unit: with density and airspeed in the bundle, q̄ must be ½·ρ·V². A channel written in
+another unit (q̄ in kPa in a US bundle, an airspeed in knots, an equivalent airspeed where the fill time needs
+the true one) passes every range check and makes every drag area and fill time wrong by the same factor.
 """
 
 from __future__ import annotations
@@ -31,6 +35,10 @@ DEAD_SPAN_SIGMAS = 10.0
 # the load factor (5-reading running median) before the first stage start may rise by this share of its rise
 # over the record: on the examples it rises by 0.4-3 % before it, and by 70 % on the shifted record above
 EARLY_RISE = 0.25
+# q̄ / (½·ρ·V²) outside this band (its median over the record; 1.000 on the examples, their 1-99 % points
+# 0.94-1.06) is a unit, not a sensor: the factors of a knot, ft/s, kPa or lbf/ft² are 1.7 and beyond, and an
+# equivalent airspeed gives ρ₀/ρ, 1.25 at 7,500 ft
+AIR_DATA_RATIO = (1 / 1.25, 1.25)
 EARLY_MARGIN_S = 0.05   # beyond the first start's 3-sigma: a fill begins at its start, and readings are stamped late
 
 
@@ -150,11 +158,29 @@ def load_before_first_stage(test):
             "a load the bundle does not model")
 
 
+def air_data_mismatch(test):
+    """A warning when the measured q̄ is not ½·ρ·V² of the bundle's density and airspeed (median ratio outside
+    :data:`AIR_DATA_RATIO`); None when it is, or when the bundle lacks one of the three."""
+    data = test.data
+    if not all(c in data for c in ("qbar", "density", "airspeed")):
+        return None
+    ratio = np.asarray(data["qbar"], float) / (0.5 * np.asarray(data["density"], float)
+                                                 * np.asarray(data["airspeed"], float) ** 2)
+    ratio = float(np.nanmedian(ratio))
+    if AIR_DATA_RATIO[0] <= ratio <= AIR_DATA_RATIO[1]:
+        return None
+    return (f"data.csv qbar is {ratio:.3g}× ½·density·airspeed² (the median over the record; within a few % "
+            "when the three agree): one of them is probably in another unit (a knot is 0.514 m/s, a ft/s "
+            "0.3048 m/s, a kPa 1,000 Pa, a lbf/ft² 47.9 Pa, a slug/ft³ 515 kg/m³), or airspeed is an equivalent "
+            "airspeed where the fill time needs the true one. Check the units of qbar, density and airspeed "
+            f"against the bundle's units ({test.units.name})")
+
+
 def reading_warnings(test):
     """What ``validate`` and ``reduce`` say of a bundle's readings: a clipped accelerometer, a dead load cell, a
-    load before the first stage."""
-    early = load_before_first_stage(test)
-    return [text for _, text in clipped_channels(test) + dead_load_cells(test)] + ([early] if early else [])
+    load before the first stage, air data in another unit."""
+    said = [load_before_first_stage(test), air_data_mismatch(test)]
+    return [text for _, text in clipped_channels(test) + dead_load_cells(test)] + [w for w in said if w]
 
 
 def summary_notes(test):

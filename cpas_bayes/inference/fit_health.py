@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cpas_bayes.data.bundle_notes import clipped_channels, dead_load_cells, load_before_first_stage
+from cpas_bayes.data.bundle_notes import air_data_mismatch, clipped_channels, dead_load_cells, load_before_first_stage
 from cpas_bayes.physics.inflation import stage_tag
 
 EDGE_SHARE = 0.05          # share of draws within EDGE_BAND posterior sd of a bound that counts as piled
@@ -211,22 +211,14 @@ def convergence_warnings(diagnostics):
     return out   # an ensemble at its step limit with R-hat and ESS on target has what its intervals need
 
 
-def clipped_accelerometer_warnings(test):
-    """An accelerometer column that holds its largest reading several readings in a row (data.bundle_notes),
-    the column named as the warning's parameter."""
-    return [warning("clipped_accelerometer", text, column) for column, text in clipped_channels(test)]
-
-
-def dead_load_cell_warnings(test):
-    """A load cell that reads its noise alone (data.bundle_notes), the cell's column named as the parameter."""
-    return [warning("dead_load_cell", text, column) for column, text in dead_load_cells(test)]
-
-
-def early_load_warnings(test):
-    """The accelerometer's load rising before the first stated stage start (data.bundle_notes): stage starts on
-    another time base than the readings."""
-    said = load_before_first_stage(test)
-    return [warning("load_before_first_stage", said)] if said else []
+def reading_health_warnings(test):
+    """What the bundle's readings themselves show (data.bundle_notes, also said by ``validate`` and ``reduce``):
+    an accelerometer column that clipped and a dead load cell (the column named as the warning's parameter), a
+    load before the first stage start, air data in another unit."""
+    out = [warning("clipped_accelerometer", text, column) for column, text in clipped_channels(test)]
+    out += [warning("dead_load_cell", text, column) for column, text in dead_load_cells(test)]
+    said = (("load_before_first_stage", load_before_first_stage(test)), ("air_data_units", air_data_mismatch(test)))
+    return out + [warning(code, text) for code, text in said if text]
 
 
 def fit_warnings(model, tree, diagnostics, ppc_table=None):
@@ -243,7 +235,5 @@ def fit_warnings(model, tree, diagnostics, ppc_table=None):
     out += timing_warnings(model, draws, float(native[-1]))
     out += sample_rate_warnings(model, draws, float(np.median(np.diff(native))))
     out += convergence_warnings(diagnostics)
-    out += clipped_accelerometer_warnings(model.test)
-    out += dead_load_cell_warnings(model.test)
-    out += early_load_warnings(model.test)
+    out += reading_health_warnings(model.test)
     return out
