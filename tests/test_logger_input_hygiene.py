@@ -616,3 +616,21 @@ def test_air_data_in_another_unit_is_said(example_dir, capsys, column, factor, w
     assert "Check the units of qbar, density and airspeed against the bundle's units (US)" in said
     assert said in reduce_test(test).warnings
     assert [w["code"] for w in reading_health_warnings(test)] == ["air_data_units"]
+
+
+def test_a_flyout_angle_from_the_horizontal_is_said(example_dir):
+    """The Main example's fly-out angle of M1 written as its complement (from the horizontal): the reading
+    warnings and the fit's health name the column and the angle to write; the example (8-15°) is silent."""
+    from cpas_bayes.data.bundle_notes import reading_warnings, wide_flyout_angles
+    from cpas_bayes.inference.fit_health import reading_health_warnings
+
+    test = read_bundle(example_dir("main-clean", "angles"))
+    assert wide_flyout_angles(test) == [] and reading_warnings(test) == []
+    theta = np.asarray(test.data["theta_M1"], float)
+    test.data["theta_M1"] = 90.0 - theta
+    (column, said), = wide_flyout_angles(test)
+    after = np.asarray(test.data["time"]) >= test.parachutes[0].stages[0].start
+    median = float(np.median(90.0 - theta[after]))
+    assert column == "theta_M1" and f"reads {median:.1f}°" in said and f"write 90° minus it: {90 - median:.1f}°" in said
+    assert said in reading_warnings(test)
+    assert [(w["code"], w["parameter"]) for w in reading_health_warnings(test)] == [("flyout_angle", "theta_M1")]

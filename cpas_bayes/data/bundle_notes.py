@@ -19,6 +19,9 @@ shifted ran to its 20,000-step cap, R-hat 1.7, error multipliers of 9.4 and 9.9,
 Air data in another unit: with density and airspeed in the bundle, q̄ must be ½·ρ·V². A channel written in
 another unit (q̄ in kPa in a US bundle, an airspeed in knots, an equivalent airspeed where the fill time needs
 the true one) passes every range check and makes every drag area and fill time wrong by the same factor.
+
+A fly-out angle from the horizontal: the riser's angle is measured from the vehicle's axis (a cluster's risers
+fly out 8-15°); its complement, written by mistake, is 75-82°, and F·cos θ then reads a quarter of the load.
 """
 
 from __future__ import annotations
@@ -39,7 +42,8 @@ EARLY_RISE = 0.25
 # 0.94-1.06) is a unit, not a sensor: the factors of a knot, ft/s, kPa or lbf/ft² are 1.7 and beyond, and an
 # equivalent airspeed gives ρ₀/ρ, 1.25 at 7,500 ft
 AIR_DATA_RATIO = (1 / 1.25, 1.25)
-EARLY_MARGIN_S = 0.05   # beyond the first start's 3-sigma: a fill begins at its start, and readings are stamped late
+EARLY_MARGIN_S = 0.05
+FLYOUT_MAX_DEG = 45.0   # a median fly-out angle beyond this: a riser that far off the axis carries no cluster   # beyond the first start's 3-sigma: a fill begins at its start, and readings are stamped late
 
 
 def _longest_run_at(time, g, value):
@@ -176,11 +180,33 @@ def air_data_mismatch(test):
             f"against the bundle's units ({test.units.name})")
 
 
+def wide_flyout_angles(test):
+    """[(column, warning)] of each fly-out angle whose median over the readings after its parachute's first
+    stage start is beyond :data:`FLYOUT_MAX_DEG`."""
+    out = []
+    time = np.asarray(test.data["time"], float)
+    for p in test.parachutes:
+        column = p.angle_column
+        if column is None or column not in test.data:
+            continue
+        theta = np.asarray(test.data[column], float)[time >= p.stages[0].start]
+        theta = theta[np.isfinite(theta)]
+        if theta.size and float(np.median(np.abs(theta))) > FLYOUT_MAX_DEG:
+            median = float(np.median(np.abs(theta)))
+            out.append((column, f"data.csv {p.flyout_angle}, the fly-out angle of parachute '{p.id}', reads "
+                                f"{median:.1f}° (median after its first stage starts): the angle is measured from "
+                                "the vehicle's axis, where a cluster's risers fly out 8-15°, and the reduction "
+                                f"takes F·cos θ, {np.cos(np.radians(median)):.2f} of the riser's tension here. "
+                                f"Is it the angle from the horizontal (then write 90° minus it: {90 - median:.1f}°)?"))
+    return out
+
+
 def reading_warnings(test):
     """What ``validate`` and ``reduce`` say of a bundle's readings: a clipped accelerometer, a dead load cell, a
-    load before the first stage, air data in another unit."""
+    fly-out angle from the horizontal, a load before the first stage, air data in another unit."""
     said = [load_before_first_stage(test), air_data_mismatch(test)]
-    return [text for _, text in clipped_channels(test) + dead_load_cells(test)] + [w for w in said if w]
+    return ([text for _, text in clipped_channels(test) + dead_load_cells(test) + wide_flyout_angles(test)]
+            + [w for w in said if w])
 
 
 def summary_notes(test):
