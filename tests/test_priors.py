@@ -324,6 +324,16 @@ BAD_RANGES = [
      "first.expopen", "outside the physical domain (0, inf) of expopen", "truncnormal with low ≥ 0"),
     ("W6 cd_o truncated below 0", "parachute", 'cd_o = { family = "truncnormal", mu = 0.6, sigma = 0.3, '
      'low = -1.0, high = 1.0 }', "parachute.cd_o", "outside the physical domain (0, inf) of cd_o", "low ≥ 0"),
+    # an open edge inside the prior's support: the MAP search's bounded optimizer reaches it exactly, where the
+    # stage law divides by it (uniform(0, 8) on expopen ended the search in a ZeroDivisionError)
+    ("W7 expopen from 0", "first", 'expopen = { family = "uniform", low = 0.0, high = 8.0 }',
+     "first.expopen", "this uniform prior includes 0, outside the physical domain (0, inf) of expopen", "low > 0"),
+    ("W7 tk from 0", "reefed", 'tk = { family = "uniform", low = 0.0, high = 2.0 }',
+     "reefed.tk", "this uniform prior includes 0, outside the physical domain (0, inf) of tk", "low > 0"),
+    ("W7 eps from 0", "first", 'eps = { family = "uniform", low = 0.0, high = 1.0 }',
+     "first.eps", "this uniform prior includes 0, outside the physical domain (0, 1] of eps", "low > 0"),
+    ("W7 cd_o truncated at 0", "parachute", 'cd_o = { family = "truncnormal", mu = 0.6, sigma = 0.3, '
+     'low = 0.0, high = 1.0 }', "parachute.cd_o", "this truncnormal prior includes 0", "low > 0"),
     ("W6 noise multiplier", "nuisance", 'noise_lc = { family = "uniform", low = -1.0, high = 2.0 }',
      "nuisance.noise_lc", "outside the physical domain (0, inf) of noise_lc", "give low ≥ 0"),
 ]
@@ -342,8 +352,7 @@ def test_impossible_or_absurd_prior_ranges_are_refused_naming_file_key_and_fix(t
 
 @pytest.mark.parametrize("table, line", [
     ("first", 'n_p = { family = "normal", mu = 12.0, sigma = 1.0 }'),       # 12 sigma above 0: never drawn there
-    ("first", 'eps = { family = "uniform", low = 0.0, high = 1.0 }'),       # the domain's own edges
-    ("reefed", 'tk = { family = "uniform", low = 0.0, high = 2.0 }'),
+    ("first", 'eps = { family = "uniform", low = 0.01, high = 1.0 }'),      # the domain's own closed edge
     ("full_open", 'ck = { family = "truncnormal", mu = 1.0, sigma = 0.2, low = 1.0, high = 2.0 }'),
     ("first", 'tk = { family = "uniform", low = 0.5, high = 0.501 }'),      # ±3.4e-4 s: narrow, still fits
     ("parachute", 'cd_o = { family = "uniform", low = 0.01, high = 2000.0 }'),  # ±680: wide, under 1000

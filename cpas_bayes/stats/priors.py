@@ -190,6 +190,14 @@ def _check_physical(prior, family, file, key, domain):
                          f"{domain.scale:g}{domain.unit}",
                          f"narrow it (sigma, sigma_log or the bounds) to at most ±{MAX_SPREAD * domain.scale:g}"
                          f"{domain.unit}")
+    if (domain.text.startswith("(") and prior.support[0] == domain.low
+            and np.isfinite(prior.logpdf(np.array([domain.low]))[0])):
+        # an open edge where the prior's support ends with a density: the MAP search's bounded optimizer reaches
+        # it exactly, where the stage law divides by expopen (or t_k, C_D,o); uniform(0, 8) on expopen ended a
+        # search in a ZeroDivisionError
+        raise InputError(file, f"key '{key}'", f"this {family} prior includes {domain.low:g}, outside the physical "
+                         f"domain {domain.text} of {key.rpartition('.')[2]} ({domain.reason})",
+                         f"give low > {domain.low:g} (for example the smallest value you would believe)")
 
 
 def _load_toml(path):
