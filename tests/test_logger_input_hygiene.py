@@ -615,7 +615,8 @@ def test_air_data_in_another_unit_is_said(example_dir, capsys, column, factor, w
     assert said is not None and said.startswith(f"data.csv qbar is {1 / ratio:.3g}× ½·density·airspeed²"), what
     assert "Check the units of qbar, density and airspeed against the bundle's units (US)" in said
     assert said in reduce_test(test).warnings
-    assert [w["code"] for w in reading_health_warnings(test)] == ["air_data_units"]
+    codes = [w["code"] for w in reading_health_warnings(test)]   # a kPa q̄ also gives a drag coefficient of ~13
+    assert codes == (["air_data_units", "drag_coefficient"] if column == "qbar" else ["air_data_units"])
 
 
 def test_a_flyout_angle_from_the_horizontal_is_said(example_dir):
@@ -634,3 +635,24 @@ def test_a_flyout_angle_from_the_horizontal_is_said(example_dir):
     assert column == "theta_M1" and f"reads {median:.1f}°" in said and f"write 90° minus it: {90 - median:.1f}°" in said
     assert said in reading_warnings(test)
     assert [(w["code"], w["parameter"]) for w in reading_health_warnings(test)] == [("flyout_angle", "theta_M1")]
+
+
+def test_a_drag_coefficient_no_canopy_has_is_said(example_dir):
+    """The two-Drogue example with G in m/s² (its cluster then reads a drag coefficient of ~6), or its diameters
+    written 3.28× (feet where metres: ~0.06): the reading warnings and the fit's health say that a unit is off;
+    the example itself (0.64) is silent."""
+    from cpas_bayes.data.bundle_notes import implausible_drag_coefficient
+    from cpas_bayes.inference.fit_health import reading_health_warnings
+
+    folder = example_dir("drogue-clean", "units")
+    test = read_bundle(folder)
+    assert implausible_drag_coefficient(test) is None
+    test.data["G"] = 9.80665 * np.asarray(test.data["G"], float)
+    said = implausible_drag_coefficient(test)
+    assert said is not None and re.search(r"a drag coefficient of 6\.\d+ on its constructed area", said)
+    assert "G in m/s² or ft/s² rather than g" in said
+    assert [w["code"] for w in reading_health_warnings(test)] == ["drag_coefficient"]
+    toml = (folder / "test.toml").read_text()
+    (folder / "test.toml").write_text(toml.replace("diameter = 23.00", "diameter = 75.46"))
+    said = implausible_drag_coefficient(read_bundle(folder))
+    assert said is not None and re.search(r"a drag coefficient of 0\.0\d+ ", said) and "a diameter in ft" in said

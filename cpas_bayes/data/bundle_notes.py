@@ -20,6 +20,10 @@ Air data in another unit: with density and airspeed in the bundle, q̄ must be �
 another unit (q̄ in kPa in a US bundle, an airspeed in knots, an equivalent airspeed where the fill time needs
 the true one) passes every range check and makes every drag area and fill time wrong by the same factor.
 
+A unit off by a factor: G in m/s², a diameter in feet in an SI bundle, a weight in kN. Each passes its range
+check, and together the readings then give the cluster a drag coefficient no canopy has: W_T·G/q̄ − CDS_V over
+the constructed area π·D_o²/4 is 0.5-0.75 at its highest full open on the examples and synthetic tests.
+
 A fly-out angle from the horizontal: the riser's angle is measured from the vehicle's axis (a cluster's risers
 fly out 8-15°); its complement, written by mistake, is 75-82°, and F·cos θ then reads a quarter of the load.
 """
@@ -43,6 +47,10 @@ EARLY_RISE = 0.25
 # equivalent airspeed gives ρ₀/ρ, 1.25 at 7,500 ft
 AIR_DATA_RATIO = (1 / 1.25, 1.25)
 EARLY_MARGIN_S = 0.05
+# the cluster's drag coefficient on its constructed area beyond these (after the last stage starts, its highest
+# 5-reading running median): a canopy's is 0.3-1.2 full open and up to ~3 at an over-inflation peak
+CD_RANGE = (0.1, 4.0)
+CD_AFTER_S = 0.5        # from the last stage start: the fill has begun
 FLYOUT_MAX_DEG = 45.0   # a median fly-out angle beyond this: a riser that far off the axis carries no cluster   # beyond the first start's 3-sigma: a fill begins at its start, and readings are stamped late
 
 
@@ -180,6 +188,33 @@ def air_data_mismatch(test):
             f"against the bundle's units ({test.units.name})")
 
 
+def implausible_drag_coefficient(test):
+    """A warning when a bundle with measured q̄ gives its cluster a drag coefficient outside :data:`CD_RANGE`
+    (W_T·G/q̄ − CDS_V over Σ π·D_o²/4, the highest 5-reading running median from :data:`CD_AFTER_S` after the last
+    stage start); None when inside, or without q̄ or enough readings there."""
+    data = test.data
+    if not test.measured_qbar or "G" not in data:
+        return None
+    time = np.asarray(data["time"], float)
+    after = time >= max(p.stages[-1].start for p in test.parachutes) + CD_AFTER_S
+    total = test.vehicle.weight + sum(p.weight for p in test.parachutes)
+    cds = total * np.asarray(data["G"], float)[after] / np.asarray(data["qbar"], float)[after] - test.vehicle.cds
+    cds = cds[np.isfinite(cds)]
+    if cds.size < 10:
+        return None
+    area = sum(np.pi * p.diameter ** 2 / 4 for p in test.parachutes)
+    cd = float(np.median(np.lib.stride_tricks.sliding_window_view(cds, 5), axis=1).max()) / area
+    if CD_RANGE[0] <= cd <= CD_RANGE[1]:
+        return None
+    likely = ("G in m/s² or ft/s² rather than g (9.8×, 32.2×), a diameter in m in a US bundle (10.8× less area)"
+              if cd > CD_RANGE[1] else "a diameter in ft in an SI bundle (10.8× the area), a weight in kN or kip")
+    return (f"the readings give the cluster a drag coefficient of {cd:.3g} on its constructed area (W_T·G/q̄ − CDS_V "
+            "at its highest after the last stage starts, over π·D_o²/4 summed over the parachutes): a canopy's is "
+            "0.3-1.2 full open, up to ~3 at an over-inflation peak. A unit is probably off: " + likely + ", or a "
+            f"weight or q̄ in another unit than the bundle's ({test.units.name}). Check G, the weights, the "
+            "diameters and qbar")
+
+
 def wide_flyout_angles(test):
     """[(column, warning)] of each fly-out angle whose median over the readings after its parachute's first
     stage start is beyond :data:`FLYOUT_MAX_DEG`."""
@@ -203,8 +238,9 @@ def wide_flyout_angles(test):
 
 def reading_warnings(test):
     """What ``validate`` and ``reduce`` say of a bundle's readings: a clipped accelerometer, a dead load cell, a
-    fly-out angle from the horizontal, a load before the first stage, air data in another unit."""
-    said = [load_before_first_stage(test), air_data_mismatch(test)]
+    fly-out angle from the horizontal, a load before the first stage, air data in another unit, a drag coefficient
+    no canopy has."""
+    said = [load_before_first_stage(test), air_data_mismatch(test), implausible_drag_coefficient(test)]
     return ([text for _, text in clipped_channels(test) + dead_load_cells(test) + wide_flyout_angles(test)]
             + [w for w in said if w])
 
