@@ -15,6 +15,7 @@ from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
+import pandas as pd
 import pytest
 import xarray as xr
 
@@ -600,6 +601,10 @@ def test_diagnose_names_the_hidden_effects(scenario, effect, seed, mode, causes)
 @pytest.mark.slow
 def test_diagnose_command_writes_the_documented_outputs(tmp_path):
     bundle = write_synthetic("drogue", "sensor_lag", 7, tmp_path / "bundle", magnitude=0.05)
+    # a density column 1.6× too dense (read by no term tried here): a reading warning the diagnosis says first
+    frame = pd.read_csv(bundle / "data.csv")
+    frame["density"] *= 1.6
+    frame.to_csv(bundle / "data.csv", index=False)
     out = tmp_path / "diag"
     code = main(["diagnose", str(bundle), "--out", str(out), "--workers", "1",
                  "--candidates", "sensor_lag,friction_drift,correlated_noise"])
@@ -631,6 +636,8 @@ def test_diagnose_command_writes_the_documented_outputs(tmp_path):
         assert (out / name).stat().st_size > 0, name
     markdown = (out / "diagnosis.md").read_text()
     assert "sensor_lag" in markdown
+    assert doc["warnings"][0].startswith("data.csv qbar is 0.625× ½·density·airspeed²"), doc["warnings"]
+    assert "Warnings:\n\n- data.csv qbar is 0.625×" in markdown
     assert "`cpas-bayes fit BUNDLE --out FOLDER --with sensor_lag`" in markdown   # how to fit what was named
 
 

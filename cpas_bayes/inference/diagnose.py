@@ -501,7 +501,7 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     else:
         baseline = baseline_from_fit(baseline_fit)
     baseline = polish_baseline_map(baseline, options)
-    warnings = []
+    warnings = list(reduction.warnings)   # what the readings themselves show comes first (data.bundle_notes)
     terms = [n for n in options.candidates if n in PHYSICAL and applies(n, test)]
     skipped = [n for n in options.candidates if n in PHYSICAL and n not in terms]
     if skipped:
