@@ -421,6 +421,16 @@ FUZZED = [
      "key 'parachute[1].id'", "does not end with '_raw'"),
     ("id ending in _sigma_random", lambda f: f.set_key("parachute", 1, "id", value="D3_sigma_random"), "test.toml",
      "key 'parachute[1].id'", "would give the reduction's columns the names of others"),
+    ("id ending in _sigma", lambda f: f.set_key("parachute", 1, "id", value="D3_sigma"), "test.toml",
+     "key 'parachute[1].id'", "does not end with '_raw', '_random', '_systematic' or '_sigma'"),
+    # a hostile test.toml of 202 parachutes passed every check, to a fit of 2,000+ parameters (2026-11-30)
+    ("17 parachutes", lambda f: f.set_key("parachute", value=[
+        {**{k: v for k, v in f.read_toml()["parachute"][1].items() if k != "load_cell"}, "id": f"X{n}"}
+        for n in range(17)]),
+     "test.toml", "key 'parachute'", "17 parachutes, more than 16 (the largest clusters flown hold 8"),
+    ("9 stages", lambda f: f.set_key("parachute", 0, "stage", value=[
+        {"label": f"s{k}", "start": 1.0 + k, "start_sigma": 0.05} for k in range(9)]),
+     "test.toml", "key 'parachute 'D3'.stage'", "9 stages, more than 8 (a canopy disreefs two or three times"),
     ("kind with a trailing space", lambda f: f.set_key("parachute", 0, "kind", value="drogue "), "test.toml",
      "key 'parachute 'D3'.kind'", "e.g. 'drogue', 'main', 'pilot', 'fbcp' or a kind of your own"),
     ("semicolon-separated CSV", lambda f: _separated_by(f, ";"), "data.csv", "row 1 (header)",

@@ -272,6 +272,7 @@ def _parse_parachutes(doc, reader, units):
     chutes = doc.get("parachute")
     if not isinstance(chutes, list) or not chutes:
         reader.fail("parachute", "no [[parachute]] entries", "add one [[parachute]] table per canopy")
+    limits.check_count(reader, "parachute", chutes, "parachutes")
     parsed, seen, owners = [], set(), {}
     for i, entry in enumerate(chutes):
         where = f"parachute[{i}]."
@@ -280,14 +281,11 @@ def _parse_parachutes(doc, reader, units):
         reader.keys(entry, PARACHUTE_KEYS, f"parachute[{i}]")
         pid = reader.string(entry, "id", where)
         check_name(pid, reader.path, f"key 'parachute[{i}].id'", "parachute id", BundleError)
-        if pid.endswith("_sigma"):
-            reader.fail(f"parachute[{i}].id", f"parachute id {pid!r} ends with '_sigma', which marks sigma columns",
-                        "choose an id that does not end with '_sigma'")
-        if pid == "total" or "_" in pid and pid.rsplit("_", 1)[1] in ("raw", "random", "systematic"):  # reduced.csv
+        if pid == "total" or "_" in pid and pid.rsplit("_", 1)[1] in ("sigma", "raw", "random", "systematic"):
             reader.fail(f"parachute[{i}].id", f"parachute id {pid!r} would give the reduction's columns the "
-                        "names of others (load_total, cds_<id>_raw, ..._sigma_random)",
-                        "choose an id that is not 'total' and does not end with '_raw', '_random' or "
-                        "'_systematic'")
+                        "names of others (load_total, cds_<id>_raw, ..._sigma_random; a sigma column ends with "
+                        "'_sigma')", "choose an id that is not 'total' and does not end with '_raw', '_random', "
+                        "'_systematic' or '_sigma'")
         where = f"parachute '{pid}'."
         if pid in seen:
             reader.fail(f"parachute[{i}].id", f"duplicate parachute id {pid!r}", "give every parachute a unique id")
@@ -310,6 +308,7 @@ def _parse_parachutes(doc, reader, units):
         if not isinstance(stages_raw, list) or not stages_raw:
             reader.fail(f"{where}stage", f"parachute {pid!r} has no stages",
                         "add at least one [[parachute.stage]] (the last is full open)")
+        limits.check_count(reader, f"{where}stage", stages_raw, "stages")
         stages = []
         for k, st in enumerate(stages_raw):
             swhere = f"{where}stage[{k}]."

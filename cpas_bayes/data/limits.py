@@ -162,3 +162,19 @@ def check_record(t, file):
         raise BundleError(file, "column 'time'", f"the median sample interval is {_fmt(step)} s, faster than "
                           f"{_fmt(1 / MIN_SAMPLE_INTERVAL)} Hz, which no flight data system records",
                           "time is in seconds: convert it if it was written in another unit")
+
+
+# How many of each a test.toml may list: each parachute and stage adds parameters to every fit (a two-Drogue
+# fit samples 29), and a hostile file of 200 parachutes passed every check before these.
+COUNTS = {"parachutes": (16, "the largest clusters flown hold 8 canopies (a heavy airdrop's G-11s)",
+                         "split the test into bundles of the canopies that share a record"),
+          "stages": (8, "a canopy disreefs two or three times (CPAS Mains: two reefed stages, then full open)",
+                     "list a stage per reefing line cut, the last full open")}
+
+
+def check_count(reader, key, items, what):
+    """Refuse (through the bundle reader) a list of more ``what`` (a :data:`COUNTS` key) than its limit."""
+    most, reason, fix = COUNTS[what]
+    if len(items) > most:
+        reader.fail(key, f"{len(items)} {what}, more than {most} ({reason})", fix)
+
