@@ -235,3 +235,19 @@ def test_diagnosed_causes_refuses_an_unknown_cause_naming_the_file_and_key(campa
         cp.diagnosed_causes(campaign_out, "T-none")
     assert str(path) in str(err.value) and key in str(err.value)
     assert "re-run the campaign" in str(err.value)
+
+
+def test_a_reading_warning_said_by_the_fit_and_the_diagnosis_is_listed_once(tmp_path):
+    """A test whose readings have a unit off: its fit's health and its diagnosis both say so (the diagnosis'
+    warnings begin with the reduction's); the report's record lists it once, in the fit's order, beside what only the
+    diagnosis said."""
+    from cpas_bayes.outputs.report_html import test_overview
+
+    said = "data.csv qbar is 0.0479× ½·density·airspeed² (...)"
+    base = tmp_path / "tests" / "T1"
+    _write(base / "fit" / "summary.json", {"warnings": [{"code": "air_data_units", "message": said},
+                                                        {"code": "prior_bound", "message": "cd_o piled up"}]})
+    _write(base / "diagnosis" / "diagnosis.json", {"test": "T1", "cause": "none", "causes": [], "reasons": [],
+                                                    "warnings": [said, "not tried: sensor_lag (...)"]})
+    (record,) = test_overview(tmp_path, {"tests": ["T1"]})
+    assert record["warnings"] == [f"fit: {said}", "fit: cd_o piled up", "not tried: sensor_lag (...)"]

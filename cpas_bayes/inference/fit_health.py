@@ -231,7 +231,8 @@ def fit_warnings(model, tree, diagnostics, ppc_table=None):
     when the table of posterior-predictive statistics is given."""
     post = tree["posterior"]
     draws = {name: np.asarray(post[name].values, float).ravel() for name in post.data_vars}
-    out = prior_bound_warnings(model, draws)
+    out = reading_health_warnings(model.test)   # the readings' own problems first: they explain the rest
+    out += prior_bound_warnings(model, draws)
     out += multiplier_warnings(draws)
     if ppc_table is not None:
         out += ppc_warnings(ppc_table)
@@ -239,5 +240,4 @@ def fit_warnings(model, tree, diagnostics, ppc_table=None):
     out += timing_warnings(model, draws, float(native[-1]))
     out += sample_rate_warnings(model, draws, float(np.median(np.diff(native))))
     out += convergence_warnings(diagnostics)
-    out += reading_health_warnings(model.test)
     return out

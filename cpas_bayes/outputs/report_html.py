@@ -172,6 +172,14 @@ def fit_health_messages(summary):
     return out
 
 
+def _warnings(summary, diag):
+    """A test's fit health messages, then its diagnosis' warnings that the fit did not already say (the readings'
+    own problems are in both)."""
+    fit = fit_health_messages(summary)
+    said = {m.removeprefix("fit: ") for m in fit}
+    return fit + [str(w) for w in (diag or {}).get("warnings") or [] if str(w) not in said]
+
+
 def test_overview(out, manifest):
     """One record per test of the campaign in ``out`` (manifest order), from the files on disk only."""
     out = Path(out)
@@ -194,8 +202,7 @@ def test_overview(out, manifest):
             "name": name, "anchor": test_anchor(i), "verdict": verdict, "causes": causes,
             "sentence": sentence(verdict, causes or [], diag),
             "where": [where_words(w) for w in unexp.get("where") or [] if isinstance(w, dict)],
-            "warnings": fit_health_messages(read_doc(base / "fit" / "summary.json"))
-            + [str(w) for w in (diag or {}).get("warnings") or []],
+            "warnings": _warnings(read_doc(base / "fit" / "summary.json"), diag),
             "pooled": "extended" if pooled.rstrip("/").endswith("extended") else ("baseline" if pooled else None),
             "flags": [str(f) for f in flags],
             "figure": figure.relative_to(out).as_posix() if figure else None,
