@@ -42,16 +42,16 @@ DEAD_SPAN_SIGMAS = 10.0
 # the load factor (5-reading running median) before the first stage start may rise by this share of its rise
 # over the record: on the examples it rises by 0.4-3 % before it, and by 70 % on the shifted record above
 EARLY_RISE = 0.25
+EARLY_MARGIN_S = 0.05   # beyond the first start's 3-sigma: a fill begins at its start, and readings are stamped late
 # q̄ / (½·ρ·V²) outside this band (its median over the record; 1.000 on the examples, their 1-99 % points
 # 0.94-1.06) is a unit, not a sensor: the factors of a knot, ft/s, kPa or lbf/ft² are 1.7 and beyond, and an
 # equivalent airspeed gives ρ₀/ρ, 1.25 at 7,500 ft
 AIR_DATA_RATIO = (1 / 1.25, 1.25)
-EARLY_MARGIN_S = 0.05
 # the cluster's drag coefficient on its constructed area beyond these (after the last stage starts, its highest
 # 5-reading running median): a canopy's is 0.3-1.2 full open and up to ~3 at an over-inflation peak
 CD_RANGE = (0.1, 4.0)
 CD_AFTER_S = 0.5        # from the last stage start: the fill has begun
-FLYOUT_MAX_DEG = 45.0   # a median fly-out angle beyond this: a riser that far off the axis carries no cluster   # beyond the first start's 3-sigma: a fill begins at its start, and readings are stamped late
+FLYOUT_MAX_DEG = 45.0   # a median fly-out angle beyond this: a riser that far off the axis carries no cluster
 
 
 def _longest_run_at(time, g, value):
@@ -163,7 +163,8 @@ def load_before_first_stage(test):
         return None
     t_rise = float(time[before][np.argmax(early)])
     return (f"the accelerometer's load rises before any stage starts: at {t_rise:.3f} s it is already "
-            f"{EARLY_RISE:.0%} of its rise over the record ({base:.3g} to {base + rise:.3g} g), {first.start - t_rise:.2f} s "
+            f"{EARLY_RISE:.0%} of its rise over the record ({base:.3g} to {base + rise:.3g} g), "
+            f"{first.start - t_rise:.2f} s "
             f"before the first stated stage start ({first.label!r} at {first.start:.3f} s, 1-sigma "
             f"{first.start_sigma:g} s). Are the stage starts in test.toml on the time base of data.csv's time column? "
             "Shift them (or the column) so that each start is its stage's line stretch, or start the record after "
@@ -190,8 +191,8 @@ def air_data_mismatch(test):
 
 def implausible_drag_coefficient(test):
     """A warning when a bundle with measured q̄ gives its cluster a drag coefficient outside :data:`CD_RANGE`
-    (W_T·G/q̄ − CDS_V over Σ π·D_o²/4, the highest 5-reading running median from :data:`CD_AFTER_S` after the last
-    stage start); None when inside, or without q̄ or enough readings there."""
+    (W_T·G/q̄ − CDS_V over Σ π·D_o²/4, the highest 5-reading running median from :data:`CD_AFTER_S` after the
+    last stage start); None when inside, or without q̄ or enough readings there."""
     data = test.data
     if not test.measured_qbar or "G" not in data:
         return None
@@ -208,7 +209,8 @@ def implausible_drag_coefficient(test):
         return None
     likely = ("G in m/s² or ft/s² rather than g (9.8×, 32.2×), a diameter in m in a US bundle (10.8× less area)"
               if cd > CD_RANGE[1] else "a diameter in ft in an SI bundle (10.8× the area), a weight in kN or kip")
-    return (f"the readings give the cluster a drag coefficient of {cd:.3g} on its constructed area (W_T·G/q̄ − CDS_V "
+    return (f"the readings give the cluster a drag coefficient of {cd:.3g} on its constructed area "
+            "(W_T·G/q̄ − CDS_V "
             "at its highest after the last stage starts, over π·D_o²/4 summed over the parachutes): a canopy's is "
             "0.3-1.2 full open, up to ~3 at an over-inflation peak. A unit is probably off: " + likely + ", or a "
             f"weight or q̄ in another unit than the bundle's ({test.units.name}). Check G, the weights, the "
@@ -232,7 +234,8 @@ def wide_flyout_angles(test):
                                 f"{median:.1f}° (median after its first stage starts): the angle is measured from "
                                 "the vehicle's axis, where a cluster's risers fly out 8-15°, and the reduction "
                                 f"takes F·cos θ, {np.cos(np.radians(median)):.2f} of the riser's tension here. "
-                                f"Is it the angle from the horizontal (then write 90° minus it: {90 - median:.1f}°)?"))
+                                "Is it the angle from the horizontal (then write 90° minus it: "
+                                f"{90 - median:.1f}°)?"))
     return out
 
 
