@@ -127,6 +127,11 @@ def dead_load_cells(test):
     return out
 
 
+def _running_median(x, width=5):
+    """Running medians of ``width`` readings (len(x) − width + 1 of them): a single spike does not move them."""
+    return np.median(np.lib.stride_tricks.sliding_window_view(x, width), axis=1)
+
+
 def _load_factor(test):
     """(time, load factor in g) of the accelerometer's readings (``G``, or the body axes' magnitude), blanks
     left out; None without an accelerometer."""
@@ -150,8 +155,7 @@ def load_before_first_stage(test):
     if found is None or found[1].size < 20:
         return None
     time, g = found
-    smooth = np.median(np.lib.stride_tricks.sliding_window_view(g, 5), axis=1)
-    time = time[2:-2]
+    smooth, time = _running_median(g), time[2:-2]
     base = float(np.median(smooth[:max(5, smooth.size // 20)]))
     rise = float(smooth.max()) - base
     first = min((p.stages[0] for p in test.parachutes), key=lambda st: st.start)
@@ -164,8 +168,8 @@ def load_before_first_stage(test):
     t_rise = float(time[before][np.argmax(early)])
     return (f"the accelerometer's load rises before any stage starts: at {t_rise:.3f} s it is already "
             f"{EARLY_RISE:.0%} of its rise over the record ({base:.3g} to {base + rise:.3g} g), "
-            f"{first.start - t_rise:.2f} s "
-            f"before the first stated stage start ({first.label!r} at {first.start:.3f} s, 1-sigma "
+            f"{first.start - t_rise:.2f} s before the first stated stage start ({first.label!r} at "
+            f"{first.start:.3f} s, 1-sigma "
             f"{first.start_sigma:g} s). Are the stage starts in test.toml on the time base of data.csv's time column? "
             "Shift them (or the column) so that each start is its stage's line stretch, or start the record after "
             "a load the bundle does not model")
@@ -204,16 +208,15 @@ def implausible_drag_coefficient(test):
     if cds.size < 10:
         return None
     area = sum(np.pi * p.diameter ** 2 / 4 for p in test.parachutes)
-    cd = float(np.median(np.lib.stride_tricks.sliding_window_view(cds, 5), axis=1).max()) / area
+    cd = float(_running_median(cds).max()) / area
     if CD_RANGE[0] <= cd <= CD_RANGE[1]:
         return None
     likely = ("G in m/s² or ft/s² rather than g (9.8×, 32.2×), a diameter in m in a US bundle (10.8× less area)"
               if cd > CD_RANGE[1] else "a diameter in ft in an SI bundle (10.8× the area), a weight in kN or kip")
     return (f"the readings give the cluster a drag coefficient of {cd:.3g} on its constructed area "
-            "(W_T·G/q̄ − CDS_V "
-            "at its highest after the last stage starts, over π·D_o²/4 summed over the parachutes): a canopy's is "
-            "0.3-1.2 full open, up to ~3 at an over-inflation peak. A unit is probably off: " + likely + ", or a "
-            f"weight or q̄ in another unit than the bundle's ({test.units.name}). Check G, the weights, the "
+            "(W_T·G/q̄ − CDS_V at its highest after the last stage starts, over π·D_o²/4 summed over the "
+            "parachutes): a canopy's is 0.3-1.2 full open, up to ~3 at an over-inflation peak. A unit is probably "
+            f"off: {likely}, or a weight or q̄ in another unit than the bundle's ({test.units.name}). Check G, the weights, the "
             "diameters and qbar")
 
 
@@ -227,9 +230,9 @@ def wide_flyout_angles(test):
         if column is None or column not in test.data:
             continue
         theta = np.asarray(test.data[column], float)[time >= p.stages[0].start]
-        theta = theta[np.isfinite(theta)]
-        if theta.size and float(np.median(np.abs(theta))) > FLYOUT_MAX_DEG:
-            median = float(np.median(np.abs(theta)))
+        theta = np.abs(theta[np.isfinite(theta)])
+        median = float(np.median(theta)) if theta.size else 0.0
+        if median > FLYOUT_MAX_DEG:
             out.append((column, f"data.csv {p.flyout_angle}, the fly-out angle of parachute '{p.id}', reads "
                                 f"{median:.1f}° (median after its first stage starts): the angle is measured from "
                                 "the vehicle's axis, where a cluster's risers fly out 8-15°, and the reduction "
