@@ -216,8 +216,8 @@ def implausible_drag_coefficient(test):
     return (f"the readings give the cluster a drag coefficient of {cd:.3g} on its constructed area "
             "(W_T·G/q̄ − CDS_V at its highest after the last stage starts, over π·D_o²/4 summed over the "
             "parachutes): a canopy's is 0.3-1.2 full open, up to ~3 at an over-inflation peak. A unit is probably "
-            f"off: {likely}, or a weight or q̄ in another unit than the bundle's ({test.units.name}). Check G, the weights, the "
-            "diameters and qbar")
+            f"off: {likely}, or a weight or q̄ in another unit than the bundle's ({test.units.name}). Check G, "
+            "the weights, the diameters and qbar")
 
 
 def wide_flyout_angles(test):
