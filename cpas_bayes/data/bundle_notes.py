@@ -212,7 +212,8 @@ def implausible_drag_coefficient(test):
     if CD_RANGE[0] <= cd <= CD_RANGE[1]:
         return None
     likely = ("G in m/s² or ft/s² rather than g (9.8×, 32.2×), a diameter in m in a US bundle (10.8× less area)"
-              if cd > CD_RANGE[1] else "a diameter in ft in an SI bundle (10.8× the area), a weight in kN or kip")
+              if cd > CD_RANGE[1] else "a diameter in ft in an SI bundle (10.8× the area), a weight in kN or kip "
+              "(or a canopy that never opened: a streamer's is below 0.1)")
     return (f"the readings give the cluster a drag coefficient of {cd:.3g} on its constructed area "
             "(W_T·G/q̄ − CDS_V at its highest after the last stage starts, over π·D_o²/4 summed over the "
             "parachutes): a canopy's is 0.3-1.2 full open, up to ~3 at an over-inflation peak. A unit is probably "
