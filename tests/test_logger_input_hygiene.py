@@ -650,10 +650,15 @@ def test_a_drag_coefficient_no_canopy_has_is_said(example_dir):
     assert implausible_drag_coefficient(test) is None
     test.data["G"] = 9.80665 * np.asarray(test.data["G"], float)
     said = implausible_drag_coefficient(test)
-    assert said is not None and re.search(r"a drag coefficient of 6\.\d+ on its constructed area", said)
+    assert said is not None and re.search(r"give the cluster a drag coefficient of 6\.\d+ on the constructed", said)
     assert "G in m/s² or ft/s² rather than g" in said
     assert [w["code"] for w in reading_health_warnings(test)] == ["drag_coefficient"]
     toml = (folder / "test.toml").read_text()
     (folder / "test.toml").write_text(toml.replace("diameter = 23.00", "diameter = 75.46"))
     said = implausible_drag_coefficient(read_bundle(folder))
     assert said is not None and re.search(r"a drag coefficient of 0\.0\d+ ", said) and "a diameter in ft" in said
+    # one parachute's diameter in metres in a US bundle: the cluster reads 1.2, that parachute's load cell 6.9
+    (folder / "test.toml").write_text(toml.replace("diameter = 23.00", "diameter = 7.01", 1))
+    said = implausible_drag_coefficient(read_bundle(folder))
+    assert said is not None and re.search(r"give parachute 'D3' \(its load cell\) a drag coefficient of 6\.\d+ ", said)
+    assert "give the cluster" not in said and "a diameter in m in a US bundle" in said

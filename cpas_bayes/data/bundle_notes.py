@@ -193,32 +193,43 @@ def air_data_mismatch(test):
             f"against the bundle's units ({test.units.name})")
 
 
+def _highest_cd(values, area):
+    """The highest 5-reading running median of a drag area over ``area``; None with fewer than 10 readings."""
+    values = values[np.isfinite(values)]
+    return float(_running_median(values).max()) / area if values.size >= 10 else None
+
+
 def implausible_drag_coefficient(test):
-    """A warning when a bundle with measured q̄ gives its cluster a drag coefficient outside :data:`CD_RANGE`
-    (W_T·G/q̄ − CDS_V over Σ π·D_o²/4, the highest 5-reading running median from :data:`CD_AFTER_S` after the
-    last stage start); None when inside, or without q̄ or enough readings there."""
+    """A warning when a bundle with measured q̄ gives its cluster (W_T·G/q̄ − CDS_V over Σ π·D_o²/4), or one of
+    its parachutes with a load cell (F_i/q̄ over its π·D_o²/4), a drag coefficient outside :data:`CD_RANGE`: the
+    highest 5-reading running median from :data:`CD_AFTER_S` after the last stage start. None when all are
+    inside, or without q̄ or enough readings there."""
     data = test.data
     if not test.measured_qbar or "G" not in data:
         return None
     time = np.asarray(data["time"], float)
     after = time >= max(p.stages[-1].start for p in test.parachutes) + CD_AFTER_S
+    qbar = np.asarray(data["qbar"], float)[after]
     total = test.vehicle.weight + sum(p.weight for p in test.parachutes)
-    cds = total * np.asarray(data["G"], float)[after] / np.asarray(data["qbar"], float)[after] - test.vehicle.cds
-    cds = cds[np.isfinite(cds)]
-    if cds.size < 10:
+    areas = {p.id: np.pi * p.diameter ** 2 / 4 for p in test.parachutes}
+    dead = {column for column, _ in dead_load_cells(test)}   # said on their own
+    found = [("the cluster", _highest_cd(total * np.asarray(data["G"], float)[after] / qbar - test.vehicle.cds,
+                                         sum(areas.values())))]
+    found += [(f"parachute '{p.id}' (its load cell)",
+               _highest_cd(np.asarray(data[p.load_column], float)[after] / qbar, areas[p.id]))
+              for p in test.parachutes if p.load_column in data and p.load_column not in dead]
+    off = [(who, cd) for who, cd in found if cd is not None and not CD_RANGE[0] <= cd <= CD_RANGE[1]]
+    if not off:
         return None
-    area = sum(np.pi * p.diameter ** 2 / 4 for p in test.parachutes)
-    cd = float(_running_median(cds).max()) / area
-    if CD_RANGE[0] <= cd <= CD_RANGE[1]:
-        return None
+    high = off[0][1] > CD_RANGE[1]
     likely = ("G in m/s² or ft/s² rather than g (9.8×, 32.2×), a diameter in m in a US bundle (10.8× less area)"
-              if cd > CD_RANGE[1] else "a diameter in ft in an SI bundle (10.8× the area), a weight in kN or kip "
+              if high else "a diameter in ft in an SI bundle (10.8× the area), a weight in kN or kip "
               "(or a canopy that never opened: a streamer's is below 0.1)")
-    return (f"the readings give the cluster a drag coefficient of {cd:.3g} on its constructed area "
-            "(W_T·G/q̄ − CDS_V at its highest after the last stage starts, over π·D_o²/4 summed over the "
-            "parachutes): a canopy's is 0.3-1.2 full open, up to ~3 at an over-inflation peak. A unit is probably "
-            f"off: {likely}, or a weight or q̄ in another unit than the bundle's ({test.units.name}). Check G, "
-            "the weights, the diameters and qbar")
+    return ("the readings give " + ", ".join(f"{who} a drag coefficient of {cd:.3g}" for who, cd in off)
+            + " on the constructed area π·D_o²/4 (the highest after the last stage starts of W_T·G/q̄ − CDS_V "
+            "for the cluster, F/q̄ for a load cell): a canopy's is 0.3-1.2 full open, up to ~3 at an over-inflation "
+            f"peak. A unit is probably off: {likely}, or a weight, load or q̄ in another unit than the bundle's "
+            f"({test.units.name}). Check G, the weights, the diameters, the load cells and qbar")
 
 
 def wide_flyout_angles(test):
