@@ -177,4 +177,3 @@ def check_count(reader, key, items, what):
     most, reason, fix = COUNTS[what]
     if len(items) > most:
         reader.fail(key, f"{len(items)} {what}, more than {most} ({reason})", fix)
-

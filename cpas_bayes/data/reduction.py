@@ -203,8 +203,8 @@ class Reduction:
 
     @property
     def warnings(self):
-        """What to know before trusting the numbers: a logger bundle's trajectory that misses the receiver, an
-        accelerometer that clipped, a dead load cell."""
+        """What to know before trusting the numbers: a logger bundle's trajectory that misses the receiver, and
+        what the readings themselves show (:func:`cpas_bayes.data.bundle_notes.reading_warnings`)."""
         from cpas_bayes.data.bundle_notes import reading_warnings
 
         said = self.air_estimate.misfit_warning() if self.air_estimate is not None else None

@@ -34,6 +34,10 @@ has none. The checks and their thresholds:
     MIN_SAMPLES_PER_FILL samples of the record: a slow logger's samples may
     straddle the peak, so the measured peak reads low and the fit's C_k and
     n_p with it (a 20 Hz accelerometer on a 0.3 s fill gives 6 samples).
+``clipped_accelerometer``, ``dead_load_cell``, ``flyout_angle``, ``load_before_first_stage``,
+``air_data_units``, ``drag_coefficient``
+    What the readings themselves show (:mod:`cpas_bayes.data.bundle_notes`, which argues each threshold; also
+    said by ``validate`` and ``reduce``), listed first: a unit off or a dead channel explains the rest.
 """
 
 from __future__ import annotations
