@@ -179,8 +179,8 @@ def air_data_mismatch(test):
     """A warning when the measured q̄ is not ½·ρ·V² of the bundle's density and airspeed (median ratio outside
     :data:`AIR_DATA_RATIO`); None when it is, or when the bundle lacks one of the three."""
     data = test.data
-    if not all(c in data for c in ("qbar", "density", "airspeed")):
-        return None
+    if test.air_data is not None or not all(c in data for c in ("qbar", "density", "airspeed")):
+        return None   # a logger bundle's (even at its best estimate, whose q̄ is ½·ρ·V² by construction)
     ratio = np.asarray(data["qbar"], float) / (0.5 * np.asarray(data["density"], float)
                                                  * np.asarray(data["airspeed"], float) ** 2)
     ratio = float(np.nanmedian(ratio))
@@ -203,10 +203,10 @@ def implausible_drag_coefficient(test):
     """A warning when a bundle with measured q̄ gives its cluster (W_T·G/q̄ − CDS_V over Σ π·D_o²/4), or one of
     its parachutes with a load cell (F_i/q̄ over its π·D_o²/4), a drag coefficient outside :data:`CD_RANGE`: the
     highest 5-reading running median from :data:`CD_AFTER_S` after the last stage start. None when all are
-    inside, or without q̄ or enough readings there."""
+    inside, without measured q̄ (a logger bundle, even at its best estimate) or enough readings there."""
     data = test.data
-    if not test.measured_qbar or "G" not in data:
-        return None
+    if not test.measured_qbar or test.air_data is not None or "G" not in data:
+        return None   # a logger bundle's q̄ is reconstructed: a trajectory that misses its receiver is said so
     time = np.asarray(data["time"], float)
     after = time >= max(p.stages[-1].start for p in test.parachutes) + CD_AFTER_S
     qbar = np.asarray(data["qbar"], float)[after]
