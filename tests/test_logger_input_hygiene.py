@@ -662,3 +662,26 @@ def test_a_drag_coefficient_no_canopy_has_is_said(example_dir):
     said = implausible_drag_coefficient(read_bundle(folder))
     assert said is not None and re.search(r"give parachute 'D3' \(its load cell\) a drag coefficient of 6\.\d+ ", said)
     assert "give the cluster" not in said and "a diameter in m in a US bundle" in said
+
+
+def test_fit_says_the_reading_warnings_before_it_samples(example_dir, tmp_path, capsys, monkeypatch):
+    """``cpas-bayes fit`` prints what the readings show (here a load cell zeroed) before the sampling starts, not
+    only in the health warnings at its end: the sampling is stopped at its start, and the warning was said."""
+    import cpas_bayes.inference.fit as fit_module
+    from cpas_bayes.core.errors import InputError
+
+    folder = example_dir("drogue-clean", "dead-cell-fit")
+    lines = (folder / "data.csv").read_text().splitlines()
+    column = lines[0].split(",").index("F_D3")
+    lines[1:] = [",".join(cells[:column] + ["0"] + cells[column + 1:])
+                 for cells in (line.split(",") for line in lines[1:])]
+    (folder / "data.csv").write_text("\n".join(lines) + "\n")
+
+    def stop(*args, **kwargs):
+        raise InputError(folder, "", "stopped where the sampling starts", "nothing")
+
+    monkeypatch.setattr(fit_module, "fit_model", stop)
+    assert main(["fit", str(folder), "--out", str(tmp_path / "fit"), "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.index("warning: data.csv F_D3, the load cell of parachute 'D3', stays within its noise") \
+        < err.index("stopped where the sampling starts")

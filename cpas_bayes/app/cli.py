@@ -302,13 +302,11 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.outputs.fit_figures import write_fit_figures
     from cpas_bayes.stats.model_terms import make_extension
 
-    problem = stop_problem(stop, ess_target, ensembles)
-    if problem:
+    if problem := stop_problem(stop, ess_target, ensembles):
         raise click.BadParameter(problem[1], param_hint=problem[0])
     terms = term_names(terms, "--with") if terms is not None else ()
     test = read_bundle(bundle)
-    problem = terms_problem(terms, test)
-    if problem:
+    if problem := terms_problem(terms, test):
         raise click.BadParameter(problem, param_hint="--with")
     _check_priors(priors, test)
     options = SamplerOptions(seed=seed, workers=workers, n_ensembles=ensembles, stop=stop,
@@ -316,7 +314,10 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
                              max_steps=max_steps)
     click.echo(f"fitting {test.name}: {len(test.parachutes)} parachutes, decay {decay}, "
                f"stage below previous: {below_previous}{', with ' + ', '.join(terms) if terms else ''}")
-    model = prepare_model(test, reduce_test(test), priors=priors, decay=decay, below_previous=below_previous,
+    reduction = reduce_test(test)
+    for warning in reduction.warnings:   # before the sampling, which a unit off or a dead channel makes long and wrong
+        click.secho(f"warning: {warning}", fg="yellow", err=True)
+    model = prepare_model(test, reduction, priors=priors, decay=decay, below_previous=below_previous,
                           extensions=tuple(make_extension(n) for n in terms))
     on_interrupt(f"each ensemble's last complete chunk is in {out / 'checkpoint'}; "
                   "rerun the same command to resume from it")
