@@ -254,13 +254,22 @@ def wide_flyout_angles(test):
     return out
 
 
+def reading_notes(test):
+    """[(code, column or None, warning)] of what the bundle's readings themselves show, in the order said: a
+    clipped accelerometer, a dead load cell, a fly-out angle from the horizontal (each naming its column), a load
+    before the first stage, air data in another unit, a drag coefficient no canopy has. The codes are the fit
+    health's (:mod:`cpas_bayes.inference.fit_health`)."""
+    out = [("clipped_accelerometer", column, text) for column, text in clipped_channels(test)]
+    out += [("dead_load_cell", column, text) for column, text in dead_load_cells(test)]
+    out += [("flyout_angle", column, text) for column, text in wide_flyout_angles(test)]
+    said = (("load_before_first_stage", load_before_first_stage(test)), ("air_data_units", air_data_mismatch(test)),
+            ("drag_coefficient", implausible_drag_coefficient(test)))
+    return out + [(code, None, text) for code, text in said if text]
+
+
 def reading_warnings(test):
-    """What ``validate`` and ``reduce`` say of a bundle's readings: a clipped accelerometer, a dead load cell, a
-    fly-out angle from the horizontal, a load before the first stage, air data in another unit, a drag coefficient
-    no canopy has."""
-    said = [load_before_first_stage(test), air_data_mismatch(test), implausible_drag_coefficient(test)]
-    return ([text for _, text in clipped_channels(test) + dead_load_cells(test) + wide_flyout_angles(test)]
-            + [w for w in said if w])
+    """The warnings of :func:`reading_notes`, as ``validate`` and ``reduce`` say them."""
+    return [text for _, _, text in reading_notes(test)]
 
 
 def summary_notes(test):

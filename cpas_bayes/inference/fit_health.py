@@ -44,8 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cpas_bayes.data.bundle_notes import (air_data_mismatch, clipped_channels, dead_load_cells,
-                                         implausible_drag_coefficient, load_before_first_stage, wide_flyout_angles)
+from cpas_bayes.data.bundle_notes import reading_notes
 from cpas_bayes.physics.inflation import stage_tag
 
 EDGE_SHARE = 0.05          # share of draws within EDGE_BAND posterior sd of a bound that counts as piled
@@ -217,16 +216,9 @@ def convergence_warnings(diagnostics):
 
 
 def reading_health_warnings(test):
-    """What the bundle's readings themselves show (data.bundle_notes, also said by ``validate`` and ``reduce``):
-    an accelerometer column that clipped, a dead load cell and a fly-out angle from the horizontal (the column
-    named as the warning's parameter), a load before the first stage start, air data in another unit, a drag
-    coefficient no canopy has."""
-    out = [warning("clipped_accelerometer", text, column) for column, text in clipped_channels(test)]
-    out += [warning("dead_load_cell", text, column) for column, text in dead_load_cells(test)]
-    out += [warning("flyout_angle", text, column) for column, text in wide_flyout_angles(test)]
-    said = (("load_before_first_stage", load_before_first_stage(test)), ("air_data_units", air_data_mismatch(test)),
-            ("drag_coefficient", implausible_drag_coefficient(test)))
-    return out + [warning(code, text) for code, text in said if text]
+    """What the bundle's readings themselves show (:func:`cpas_bayes.data.bundle_notes.reading_notes`, also said
+    by ``validate`` and ``reduce``), a column the note names as the warning's parameter."""
+    return [warning(code, text, column) for code, column, text in reading_notes(test)]
 
 
 def fit_warnings(model, tree, diagnostics, ppc_table=None):
