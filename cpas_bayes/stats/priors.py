@@ -78,6 +78,11 @@ class Domain:
     unit: str
     reason: str
 
+    @property
+    def open_low(self):
+        """True when ``low`` itself is outside the domain: its interval, as written, opens with '('."""
+        return self.text.startswith("(")
+
 
 _POSITIVE = (0.0, math.inf, "(0, inf)")
 # Each prior-file parameter's physical domain, scale (shipped priors spread 0.1-1x it) and unit, with why.
@@ -190,7 +195,7 @@ def _check_physical(prior, family, file, key, domain):
                          f"{domain.scale:g}{domain.unit}",
                          f"narrow it (sigma, sigma_log or the bounds) to at most ±{MAX_SPREAD * domain.scale:g}"
                          f"{domain.unit}")
-    if (domain.text.startswith("(") and prior.support[0] == domain.low
+    if (domain.open_low and prior.support[0] == domain.low
             and np.isfinite(prior.logpdf(np.array([domain.low]))[0])):
         # an open edge where the prior's support ends with a density: the MAP search's bounded optimizer reaches
         # it exactly, where the stage law divides by expopen (or t_k, C_D,o); uniform(0, 8) on expopen ended a
