@@ -152,6 +152,23 @@ def test_a_shape_only_name_beside_a_term_named_by_its_gain_is_kept():
     assert rule.stand_ins_by_shape(["added_mass", "sensor_lag"], rounds, 0.1, OPTIONS) == []
 
 
+@pytest.mark.parametrize("gains,share,left,withdrawn", [
+    ({"added_mass": 12.0}, 0.22, True, True),     # the pitot lag's added mass: a sliver of a misfit left unexplained
+    ({"added_mass": 12.0}, 0.22, False, False),   # nothing significant left: the term explains what there is
+    ({"added_mass": 12.0}, 0.7, True, False),     # it explains most of the misfit: a cause with a remainder
+    ({"added_mass": 60.0}, 0.22, True, False),    # a real gain: named, with "unexplained" beside it
+    ({"added_mass": 12.0, "sensor_lag": 60.0}, 0.22, True, False),   # one strong name keeps the named fit
+])
+def test_terms_that_gain_little_beside_an_unexplained_misfit_are_withdrawn(gains, share, left, withdrawn):
+    ref, cands = _field(gains)
+    checks = {t: rule.check_term(t, c, ref, OPTIONS) for t, c in cands.items()}
+    assert all(c.gains for c in checks.values()), [c.reasons for c in checks.values()]
+    rounds = [{"chosen": t, "checks": [c]} for t, c in checks.items()] + [{"chosen": None, "checks": []}]
+    out, why = rule.withdrawn_terms(list(gains), rounds, share, left, OPTIONS)
+    assert out == (list(gains) if withdrawn else [])
+    assert ("less than 20" in why) == withdrawn and (why == "") == (not withdrawn)
+
+
 @pytest.mark.parametrize("shares,clear", [((1.0, 0.05), True), ((1.0, 0.5), False), ((0.8, 0.05), False),
                                           ((None, None), False)])
 def test_a_term_that_takes_over_the_whole_discrepancy_leads_one_that_hardly_touches_it(shares, clear):

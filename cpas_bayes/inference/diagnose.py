@@ -51,7 +51,7 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_P
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, cannot_rival, check_term, choose_term, compare_table,
                                                  fit_converged, paired_difference, passes, structured_phases,
-                                                 stand_ins_by_shape, unexplained_share, versus_baseline)
+                                                 unexplained_share, versus_baseline, withdrawn_terms)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals
@@ -537,14 +537,12 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
     total, total_se = paired_difference(discrepancy, baseline)
     remaining, remaining_se = paired_difference(reference, final)
     share = unexplained_share(total, remaining) if named else 0.0
-    withdrawn = stand_ins_by_shape(named, rounds, share, options)
-    if withdrawn:   # stand-ins for the discrepancy's shape: the verdict is as if nothing had been named
+    withdrawn, why = withdrawn_terms(named, rounds, share, passes(remaining, remaining_se, options), options)
+    if withdrawn:   # stand-ins: the verdict is as if nothing had been named
         named, final, reference, named_fit = [], baseline, discrepancy, None
         remaining, remaining_se = total, total_se
     left = passes(remaining, remaining_se, options)
-    reasons = [x for r in rounds for x in r["reasons"]] + ([
-        f"{', '.join(withdrawn)} withdrawn: named for taking the discrepancy's shape over, alone it explains "
-        f"{100 * share:.0f} % of the discrepancy's gain (a stand-in)"] if withdrawn else [])
+    reasons = [x for r in rounds for x in r["reasons"]] + ([why] if withdrawn else [])
     unexplained = None
     is_unexplained = (left and (not named or share < options.min_share)) or (not named and not adequate)
     where, shape = discrepancy_where(reference, final.fit)

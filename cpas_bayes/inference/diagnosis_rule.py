@@ -89,7 +89,10 @@ left to explain; its share of the discrepancy's gain over the baseline says
 how much the named terms explained. ``unexplained`` is a cause when that
 remainder passes the naming thresholds and either nothing was named or the
 named terms explain less than ``min_share`` (½) of it; and when nothing was
-named but the baseline fails its adequacy checks.
+named but the baseline fails its adequacy checks. Named terms are withdrawn as stand-ins
+(:func:`withdrawn_terms`) when every one of them was named only for taking the discrepancy's shape over and
+alone they explain less than half of its gain, or when every one gained less than twice ``min_gain`` and
+they leave an unexplained misfit beside them: slivers of an effect no term describes.
 """
 
 from __future__ import annotations
@@ -115,6 +118,7 @@ REPEATS_PRIOR = 0.9
 RHAT_LOOSE = 1.05           # R-hat a fit may have when its ensembles agree on the gain (comparison_settled)
 TAKE_OVER = 0.7             # share of a significant discrepancy a term must take over when its gain is < 2 se
 EXPLAINS = 0.9              # ... and the share that names a term whose gain is within 2 se of zero (it explains)
+SLIVER = 2.0                # × min_gain: below it, terms beside an unexplained misfit are withdrawn (slivers)
 
 
 def paired_difference(a: CandidateFit, b: CandidateFit):
@@ -281,6 +285,40 @@ def stand_ins_by_shape(named, rounds, share, options):
     if named and share < options.min_share and set(named) <= by_shape:
         return list(named)
     return []
+
+
+def slivers_beside_unexplained(named, rounds, share, left, options):
+    """The named terms to withdraw: every one gained less than :data:`SLIVER` × ``options.min_gain`` over
+    its reference, while the named terms, fitted without the discrepancy, explain less than
+    ``options.min_share`` of its gain and what they leave (``left``) passes the naming thresholds.
+
+    Such a term took a sliver of a misfit it does not describe: the misfit stays unexplained either way,
+    and an out-of-catalogue effect offers every term some structure to take. A Drogue's pitot lag (detection
+    study, seed 20004) had ``added_mass`` named at 10.2 ± 4.1 over the discrepancy, explaining 22 % of the
+    discrepancy's gain, the rest gaining 97.7 ± 14.8. Catalogued effects gain far more where they leave a
+    misfit beside them (a Drogue's added mass at k_a 0.6: +279 to +418; a Main's lag beside an added mass
+    +58 to +74), and a term whose gain is this small leaves no misfit to speak of when it is the cause
+    (the rule's 10 sits between clean tests' < 3 and the smallest simulated effects' ≥ 20). As in
+    :func:`stand_ins_by_shape`, withdrawn only when every named term is such a one."""
+    chosen = {c.term: c.elpd_diff for r in rounds for c in r["checks"] if c.term == r.get("chosen")}
+    if named and left and share < options.min_share and \
+            all(chosen.get(t, math.inf) < SLIVER * options.min_gain for t in named):
+        return list(named)
+    return []
+
+
+def withdrawn_terms(named, rounds, share, left, options):
+    """The named terms the verdict withdraws as stand-ins, and the sentence that says why: those of
+    :func:`stand_ins_by_shape`, else those of :func:`slivers_beside_unexplained` (``left``: what the named terms
+    leave passes the naming thresholds). ``([], "")`` when the names stand."""
+    if withdrawn := stand_ins_by_shape(named, rounds, share, options):
+        return withdrawn, (f"{', '.join(withdrawn)} withdrawn: named for taking the discrepancy's shape over, alone "
+                           f"it explains {100 * share:.0f} % of the discrepancy's gain (a stand-in)")
+    if withdrawn := slivers_beside_unexplained(named, rounds, share, left, options):
+        return withdrawn, (f"{', '.join(withdrawn)} withdrawn: each gained less than "
+                           f"{SLIVER * options.min_gain:g} and together they explain {100 * share:.0f} % of the "
+                           "discrepancy's gain, the rest a misfit of its own (a sliver of it, not its cause)")
+    return [], ""
 
 
 def check_term(term, candidate: CandidateFit, reference: CandidateFit, options: DiagnoseOptions,
