@@ -107,3 +107,45 @@ def gnss_logger(sim, rate, clock_origin, speed_noise, altitude_noise, rng, start
     vel += rng.normal(0.0, speed_noise, size=vel.shape)
     alt = np.interp(true_t, t, h) + rng.normal(0.0, altitude_noise, size=true_t.shape)
     return true_t + latency + clock_origin, vel, alt
+
+
+def _geodetic(north, east, up, lat0, lon0, h0):
+    """Latitude, longitude (deg) and height (m) of points north/east/up (m) of (lat0, lon0, h0): through
+    Earth-centred coordinates on the WGS-84 ellipsoid (Bowring's iteration back), not the local radii that
+    the importer uses, so that a test of its conversion is not the same formula twice."""
+    a, e2 = 6378137.0, 6.69437999014e-3
+    p0, l0 = math.radians(lat0), math.radians(lon0)
+    n0 = a / math.sqrt(1 - e2 * math.sin(p0) ** 2)
+    origin = np.array([(n0 + h0) * math.cos(p0) * math.cos(l0), (n0 + h0) * math.cos(p0) * math.sin(l0),
+                       (n0 * (1 - e2) + h0) * math.sin(p0)])
+    east_axis = np.array([-math.sin(l0), math.cos(l0), 0.0])
+    north_axis = np.array([-math.sin(p0) * math.cos(l0), -math.sin(p0) * math.sin(l0), math.cos(p0)])
+    up_axis = np.array([math.cos(p0) * math.cos(l0), math.cos(p0) * math.sin(l0), math.sin(p0)])
+    x, y, z = (origin[:, None] + np.outer(east_axis, east) + np.outer(north_axis, north)
+               + np.outer(up_axis, up))
+    lon = np.arctan2(y, x)
+    r = np.hypot(x, y)
+    lat = np.arctan2(z, r * (1 - e2))
+    for _ in range(6):
+        n = a / np.sqrt(1 - e2 * np.sin(lat) ** 2)
+        lat = np.arctan2(z + e2 * n * np.sin(lat), r)
+    n = a / np.sqrt(1 - e2 * np.sin(lat) ** 2)
+    return np.degrees(lat), np.degrees(lon), r / np.cos(lat) - n
+
+
+def gnss_fixes_logger(sim, rate, clock_origin, position_noise, altitude_noise, rng, latency=0.0,
+                      site=(34.9, -117.9), start=0.3, end=None):
+    """Fixes of a receiver that logs no velocity: (logger time in s, latitude and longitude in degrees,
+    altitude in m), each fix stamped ``latency`` s late; noise per fix: ``position_noise`` m north and east,
+    ``altitude_noise`` m up. The drop's track starts at ``site`` (latitude, longitude)."""
+    t, v, h, _ = sim
+    dt = t[1] - t[0]
+    north = np.concatenate([[0.0], np.cumsum(v[:-1, 0]) * dt])     # the explicit Euler of simulate()
+    east = np.concatenate([[0.0], np.cumsum(v[:-1, 1]) * dt])
+    end = t[-1] - 0.3 if end is None else end
+    true_t = start + rng.uniform(0, 1 / rate) + np.arange(0, end - start, 1 / rate)
+    n = np.interp(true_t, t, north) + rng.normal(0.0, position_noise, true_t.shape)
+    e = np.interp(true_t, t, east) + rng.normal(0.0, position_noise, true_t.shape)
+    alt = np.interp(true_t, t, h) + rng.normal(0.0, altitude_noise, true_t.shape)
+    lat, lon, _ = _geodetic(n, e, np.zeros_like(n), *site, 0.0)
+    return true_t + latency + clock_origin, lat, lon, alt

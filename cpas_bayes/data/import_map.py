@@ -23,6 +23,8 @@ from cpas_bayes.core.inputs import check_keys, check_name, nearest, read_toml, s
 from cpas_bayes.core.units import column_factor
 from cpas_bayes.data.bundle import parse_test_document
 from cpas_bayes.data.bundle_csv import skip_lines
+from cpas_bayes.data.import_velocity import (POSITION, TRACK, checked_position_sigma, velocity_from_fixes,
+                                             velocity_from_track)
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION, MAX_START_SIGMA
 
 MAP_KEYS = ("reference", "template", "air_data", "record", "events", "logger", "test")
@@ -48,6 +50,7 @@ CHANNELS = {
     "ground_speed": ("speed", (1,), "horizontal ground speed (with course and vertical_speed: the velocity)"),
     "course": ("angle", (1,), "course over ground, clockwise from north (with ground_speed and vertical_speed)"),
     "vertical_speed": ("speed", (1,), "vertical speed, positive up"),
+    "position": ("angle", (2,), "latitude and longitude of the fixes (the velocity by differences, with altitude)"),
     "airspeed": ("speed", (1,), "airspeed"),
     "gamma": ("angle", (1,), "flight path angle, positive above the horizon"),
     "altitude": ("length", (1,), "altitude above sea level"),
@@ -76,7 +79,8 @@ class ChannelSpec:
     factor: float      # multiplies the column into SI (angles: degrees)
     sign: float        # +1 or -1 (one column only)
     quantity: str
-    parts: tuple = ()  # a velocity from a track: its ground_speed, course and vertical_speed channels
+    parts: tuple = ()  # a velocity from a track (ground_speed, course, vertical_speed) or fixes (position, altitude)
+    source: str = "columns"   # a velocity's: "columns", "track" or "fixes" (data/import_velocity.py)
     ground: float = 0.0   # m added to an altitude logged above ground: the site's elevation above sea level
 
 
@@ -120,6 +124,7 @@ class ImportMap:
     test_path: Path           # the file refusals about test keys name
     test_prefix: str          # "test." for the map's own [test], "" for a template
     air_data: str | None = None   # AIR_DATA_MODES or "measured"; None while the map is being read
+    position_sigma: float | None = None   # [test.sigma] position: fix-to-fix noise, bundle length unit
 
     @property
     def logger_bundle(self):
@@ -309,34 +314,11 @@ def _logger(m, name, entry, quantities):
     m.keys(raw, tuple(quantities), f"{where}.channels")
     channels = {key: _channel(m, key, value, f"{where}.channels.{key}", quantities) for key, value in raw.items()}
     if TRACK & set(channels):
-        channels = _velocity_from_track(m, f"{where}.channels", channels)
+        channels = velocity_from_track(m, f"{where}.channels", channels, ChannelSpec)
+    elif POSITION in channels:
+        channels = velocity_from_fixes(m, f"{where}.channels", channels, ChannelSpec)
     return LoggerSpec(name, path, column, unit, factor, clock, None if offset == "auto" else offset, hint, search,
                       skip, delimiter, channels)
-
-
-TRACK = {"ground_speed", "course"}
-
-
-def _velocity_from_track(m, where, channels):
-    """A receiver that logs its track (ground speed, course over ground, vertical speed: ArduPilot's GPS Spd,
-    GCrs and VZ with sign = -1, NMEA's speed and course with a climb rate) gives the velocity: its three
-    channels become one ``velocity`` channel (north = s·cos c, east = s·sin c, down = −v_up)."""
-    parts = ("ground_speed", "course", "vertical_speed")
-    missing = [p for p in parts if p not in channels]
-    if missing:
-        m.fail(f"{where}.{missing[0]}", "is missing: ground_speed and course give the velocity with the "
-               "vertical speed of the same logger", f"add {missing[0]} = {{ column = \"...\", unit = \"...\" }} "
-               "to this logger (vertical_speed positive up: sign = -1 for a column positive down), or map velocity "
-               "= { columns = [north, east, down] } instead")
-    if "velocity" in channels:
-        m.fail(f"{where}.velocity", "the velocity is mapped twice: as velocity and as ground_speed, course and "
-               "vertical_speed", "keep one of the two")
-    specs = tuple(channels.pop(p) for p in parts)
-    channels["velocity"] = ChannelSpec("velocity", tuple(s.columns[0] for s in specs),
-                                       ", ".join(f"{p} {s.unit}" + (" sign -1" if s.sign < 0 else "")
-                                                 for p, s in zip(parts, specs)), 1.0, 1.0, "speed",
-                                       parts=specs)
-    return channels
 
 
 def _clock_offset(m, entry, key, where):
@@ -509,8 +491,11 @@ def _check_channels(m, loggers, test_doc, prefix, meta, mode):
                    "package reconstructs (air_data = \"reconstruct\", the default with GNSS velocity)",
                    f"remove qbar from [{prefix}sigma] and give v_north, v_east, v_up and altitude; or write "
                    "air_data = \"ground_speed\" for q̄ from the ground speed (no wind, the receiver's lag kept)")
+        if _from_fixes(loggers) and (given := [c for c in VELOCITY_SIGMAS if c in sigma]):
+            m.fail(f"{prefix}sigma.{given[0]}", "the velocity is differenced from the receiver's fixes, whose 1-sigmas "
+                   "follow from position's and altitude's", f"remove {', '.join(given)} from [{prefix}sigma]")
         needed += [(c, "in the bundle's speed unit", "the receiver's velocity accuracy, e.g. 0.1 m/s")
-                   for c in ("v_north", "v_east", "v_up")]
+                   for c in VELOCITY_SIGMAS if not _from_fixes(loggers)]
         needed += [("altitude", "in the bundle's length unit", "e.g. 3 m for GNSS, 1 m for a barometer")]
     else:
         needed += [("qbar", "in the bundle's units", "e.g. 2 % of q̄")]
@@ -525,6 +510,13 @@ def _check_channels(m, loggers, test_doc, prefix, meta, mode):
                    "weighed by 1/sigma", f"give the sensor's 1-sigma, {unit} ({example})")
 
 
+VELOCITY_SIGMAS = ("v_north", "v_east", "v_up")
+
+
+def _from_fixes(loggers):
+    return any(lg.has("velocity") and lg.channels["velocity"].source == "fixes" for lg in loggers)
+
+
 def read_import_map(path, folder) -> ImportMap:
     """Read and check a column map; ``folder`` (the output bundle) names the test when [test] has no name."""
     path = Path(path)
@@ -533,6 +525,8 @@ def read_import_map(path, folder) -> ImportMap:
     m.keys(doc, MAP_KEYS, "")
     test_doc, test_path, prefix = _test_document(m, doc)
     _check_stage_starts(_Map(test_path), test_doc, prefix)
+    test_doc = copy.deepcopy(test_doc)   # the fixes' noise is the import's, not a bundle channel's sigma
+    position_sigma = test_doc["sigma"].pop(POSITION, None) if isinstance(test_doc.get("sigma"), dict) else None
     # first read as either kind of bundle (the channels, read next, say which), then as the kind they make
     preliminary = ImportMap(path, (), "", "", 0.0, None, None, 0.0, None, 0.0, 0.0, test_doc, test_path, prefix)
     meta = bundle_metadata(preliminary, None, folder)
@@ -549,6 +543,8 @@ def read_import_map(path, folder) -> ImportMap:
     loggers = tuple(_logger(m, name, entry, quantities) for name, entry in raw.items())
     mode = _air_data_mode(m, doc, loggers)
     _check_channels(m, loggers, test_doc, prefix, meta, mode)
+    position_sigma = checked_position_sigma(_Map(test_path), position_sigma, _from_fixes(loggers) and mode == "reconstruct",
+                                     prefix)
     bundle_metadata(replace(preliminary, air_data=mode), None, folder)   # what this kind of bundle refuses
 
     with_accel = [lg.name for lg in loggers if lg.has("accel")]
@@ -584,7 +580,7 @@ def read_import_map(path, folder) -> ImportMap:
                      m.number(events, "release_sigma", "events.release_sigma", default=0.0, minimum=0.0),
                      line_stretch,
                      m.number(events, "line_stretch_sigma", "events.line_stretch_sigma", default=0.0, minimum=0.0),
-                     threshold, test_doc, test_path, prefix, mode)
+                     threshold, test_doc, test_path, prefix, mode, position_sigma)
 
 
 def _with_offset(spec, offset):

@@ -51,6 +51,7 @@ from cpas_bayes.data.bundle_csv import parse_numbers, skip_lines
 from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data.import_clocks import clock_offsets, find_events, load_factor
 from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
+from cpas_bayes.data.import_velocity import pair_rows, pair_sigmas
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
 from cpas_bayes.data.reduction import check_reducible
 from cpas_bayes.data.logger_events import Event, sample_interval
@@ -230,6 +231,19 @@ def _times(spec, frame):
     return ((stamps - _EPOCH) / pd.Timedelta(1, "s")).to_numpy(dtype=float)
 
 
+def _check_fixes(spec, position, lat, lon):
+    """Latitudes within ±90°, longitudes within ±360°, and fixes that move (a receiver without a fix logs one)."""
+    for values, name, bound in ((lat, "latitude", 90.0), (lon, "longitude", 360.0)):
+        if np.abs(values).max() > bound:
+            i = int(np.argmax(np.abs(values) > bound))
+            _fail_file(spec, f"{_row(spec, i)}, column '{position.columns[name == 'longitude']}'",
+                       f"{name} {values[i]:.6g}° is beyond ±{bound:g}°", "map [latitude, longitude] in that order, "
+                       "in degrees (unit = \"deg\") or radians (\"rad\")")
+    if np.ptp(lat) == 0 and np.ptp(lon) == 0:
+        _fail_file(spec, f"columns {', '.join(position.columns)}", "every fix is the same point: the receiver had no "
+                   "fix, or the columns are not its position", "map the columns of the receiver's latitude and longitude")
+
+
 def read_logger(spec) -> LoggerRecord:
     """One logger file: strictly increasing time in seconds and each mapped channel in SI."""
     size = spec.path.stat().st_size
@@ -251,6 +265,12 @@ def read_logger(spec) -> LoggerRecord:
                    "sort the rows by time and remove repeated samples")
     channels = {}
     for ch in spec.channels.values():
+        if ch.source == "fixes":   # (the logger holds nothing else) its rows become the pairs of fixes
+            (lat, lon), alt = (_numbers(spec, frame, c) * ch.parts[0].factor for c in ch.parts[0].columns), \
+                _numbers(spec, frame, ch.parts[1].columns[0]) * ch.parts[1].factor + ch.parts[1].ground
+            _check_fixes(spec, ch.parts[0], lat, lon)
+            t, channels["velocity"], channels["altitude"], channels["pair_span"] = pair_rows(t, lat, lon, alt)
+            break
         if ch.parts:   # a track: ground speed, course (deg), vertical speed up → north, east, down
             speed, course, up = (_numbers(spec, frame, p.columns[0]) * p.factor * p.sign for p in ch.parts)
             channels[ch.name] = np.column_stack([speed * np.cos(np.radians(course)),
@@ -334,6 +354,21 @@ def _snapped(times, rows):
     return np.where(np.abs(nearest - times) <= SNAP, nearest, times)
 
 
+def _receiver_sigmas(import_map, records, offsets, meta, window):
+    """The receiver's 1-sigmas in SI at its samples in ``window``: ((north, east, up), altitude); per pair of
+    fixes when its velocity is differenced from them (data/import_velocity.py), else the map's constants."""
+    u, sigma = meta.units, meta.sigma
+    h_sigma = u.si(float(sigma["altitude"]), "length")
+    if import_map.feeder("velocity").channels["velocity"].source != "fixes":
+        return [u.si(float(sigma[c]), "speed") for c in VELOCITY_COLUMNS], h_sigma
+    spec = import_map.feeder("velocity")
+    rec, off = records[spec.name], offsets[spec.name].offset
+    keep = (rec.time + off >= window[0]) & (rec.time + off <= window[1])
+    across, up, h_sigma = pair_sigmas(rec.channels["pair_span"][keep], u.si(import_map.position_sigma, "length"),
+                                      h_sigma)
+    return [across, across, up], h_sigma
+
+
 def _assemble_logger(import_map, records, offsets, meta, t_rows, idx, release):
     """A logger bundle's columns in SI and where each came from: G and the parachute channels at the
     accelerometer's rows, the velocity (north, east, up) and the altitude at their loggers' own samples within
@@ -358,12 +393,15 @@ def _assemble_logger(import_map, records, offsets, meta, t_rows, idx, release):
     sources = {"time": f"{g_rec.spec.name}: {g_rec.spec.time_column} − release, with the receiver's samples",
                "G": _source(import_map, "accel",
                             " magnitude less its noise bias / g0" if len(accel.columns) == 3 else " / g0")}
+    v_sigma, h_sigma = _receiver_sigmas(import_map, records, offsets, meta, (lo, hi))
     for k, column in enumerate(VELOCITY_COLUMNS):   # the map's velocity is north, east, down
         columns[column] = placed(t_v, velocity[:, k] if k < 2 else -velocity[:, 2])
-        columns[f"{column}_sigma"] = placed(t_v, u.si(float(sigma[column]), "speed"))
-    sources["v_north, v_east, v_up"] = _source(import_map, "velocity", " north, east, −down, at its own samples")
+        columns[f"{column}_sigma"] = placed(t_v, v_sigma[k])
+    fixes = import_map.feeder("velocity").channels["velocity"].source == "fixes"
+    sources["v_north, v_east, v_up"] = _source(import_map, "velocity", " north, east, −down, at its own samples"
+                                               + (" (differences of pairs of fixes)" if fixes else ""))
     columns["altitude"] = placed(t_h, altitude)
-    columns["altitude_sigma"] = placed(t_h, u.si(float(sigma["altitude"]), "length"))
+    columns["altitude_sigma"] = placed(t_h, h_sigma)
     sources["altitude"] = _source(import_map, "altitude", ", at its own samples")
     if import_map.feeder("density") is not None:
         columns["density"] = placed(t_h, _interpolated(import_map, records, offsets, "density", t_h))
