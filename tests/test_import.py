@@ -804,7 +804,8 @@ def test_a_receiver_that_logs_only_its_fixes_gives_a_logger_bundle_with_honest_v
     out = tmp_path / "logger"
     code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", out)
     assert code == 0, err
-    assert "differences of pairs of fixes" in printed
+    assert "differences of pairs of fixes" in printed and "means of pairs of fixes" in printed
+    assert "pairs of fixes (rows) at 5.0 Hz" in printed
     test = read_bundle(out)
     assert not test.measured_qbar
     d = test.data

@@ -402,7 +402,8 @@ def _assemble_logger(import_map, records, offsets, meta, t_rows, idx, release):
                                                + (" (differences of pairs of fixes)" if fixes else ""))
     columns["altitude"] = placed(t_h, altitude)
     columns["altitude_sigma"] = placed(t_h, h_sigma)
-    sources["altitude"] = _source(import_map, "altitude", ", at its own samples")
+    sources["altitude"] = _source(import_map, "altitude", ", at its own samples" + (" (means of pairs of fixes)"
+                                                                                   if fixes else ""))
     if import_map.feeder("density") is not None:
         columns["density"] = placed(t_h, _interpolated(import_map, records, offsets, "density", t_h))
         sources["density"] = _source(import_map, "density", ", at the altitude's samples")
@@ -494,7 +495,9 @@ def describe(result) -> list:
             other = "none" if math.isnan(al.runner_up) else f"{al.runner_up:.2f}"
             clock = (f"offset {off.offset:+.4f} ± {off.sigma:.4f} s (auto: correlation {al.correlation:.2f}, "
                      f"next best {other})")
-        lines.append(f"{name}: {rec.spec.path.name}, {len(rec.time):,} rows at {rec.rate:.1f} Hz, {clock}")
+        rows = (f"{len(rec.time):,} pairs of fixes (rows) at {rec.rate:.1f} Hz" if "pair_span" in rec.channels
+                else f"{len(rec.time):,} rows at {rec.rate:.1f} Hz")
+        lines.append(f"{name}: {rec.spec.path.name}, {rows}, {clock}")
         if off.disagreement is not None:
             q = off.disagreement
             lines.append(f"warning: logger '{name}': the signals both loggers see match at offset {q.offset:+.4f} ± "
