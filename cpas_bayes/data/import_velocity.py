@@ -140,8 +140,39 @@ def pair_rows(time, latitude, longitude, altitude):
     return 0.5 * (time[first] + time[second]), velocity, 0.5 * (altitude[first] + altitude[second]), span
 
 
-def pair_sigmas(span, position_sigma, altitude_sigma):
-    """1-sigmas of the pairs' rows from the fixes' noise: (north and east, up, altitude), each (R,)."""
+def pair_truncation(time, accel, middle, span, latencies=(0.0,)):
+    """How far each pair's rows may depart from the instant they show (m/s, m), sized from an accelerometer's
+    magnitude ``accel`` (m/s²) at ``time`` (both on the pairs' clock): a pair's difference is its mean
+    velocity, whose departure from the velocity at its middle t_m is the mean over the pair of ∫_(t_m)^τ a dt,
+    zero for a steady acceleration; with the force along the flight path that is the same mean of the
+    magnitude's departure from its pair mean. The mean of two altitudes departs from the middle's by
+    Δ²·a_v/8, a_v ≈ |ā − g0| the pair's mean vertical acceleration in a steep descent. The instant a pair
+    shows is its stamp less the receiver's latency, which the reconstruction fits later: the largest over
+    ``latencies`` (s) is taken."""
+    from cpas_bayes.core.units import STANDARD_GRAVITY
+
+    velocity, altitude = np.zeros(len(middle)), np.zeros(len(middle))
+    for latency in latencies:
+        shown = middle - latency
+        lo = np.searchsorted(time, shown - span / 2)
+        hi = np.searchsorted(time, shown + span / 2, side="right")
+        for i, (a, b) in enumerate(zip(lo, hi)):
+            if b - a < 3:
+                continue
+            t, dev = time[a:b], accel[a:b] - accel[a:b].mean()
+            swept = np.concatenate([[0.0], np.cumsum(0.5 * (dev[1:] + dev[:-1]) * np.diff(t))])
+            velocity[i] = max(velocity[i], abs(np.mean(swept - np.interp(shown[i], t, swept))))
+            altitude[i] = max(altitude[i], span[i] ** 2 * abs(accel[a:b].mean() - STANDARD_GRAVITY) / 8.0)
+    return velocity, altitude
+
+
+def pair_sigmas(span, position_sigma, altitude_sigma, truncation=(0.0, 0.0)):
+    """1-sigmas of the pairs' rows: (north and east, up, altitude), each (R,), from the fixes' noise and the
+    ``truncation`` of :func:`pair_truncation` (velocity, altitude), added in quadrature: without it the
+    likelihood would take a 1 Hz pair's mean velocity through a snatch, metres per second from the
+    velocity at its middle, for a misfit."""
     span = np.asarray(span, float)
-    return (np.sqrt(2.0) * position_sigma / span, np.sqrt(2.0) * altitude_sigma / span,
-            np.full(span.shape, altitude_sigma / np.sqrt(2.0)))
+    truncation_v, truncation_h = truncation
+    return (np.hypot(np.sqrt(2.0) * position_sigma / span, truncation_v),
+            np.hypot(np.sqrt(2.0) * altitude_sigma / span, truncation_v),
+            np.hypot(altitude_sigma / np.sqrt(2.0), truncation_h))
