@@ -359,13 +359,18 @@ def _snapped(times, rows):
     return np.where(np.abs(nearest - times) <= SNAP, nearest, times)
 
 
+def _from_fixes(import_map):
+    """Whether the receiver's velocity is differenced from its fixes (data/import_velocity.py)."""
+    return import_map.feeder("velocity").channels["velocity"].source == "fixes"
+
+
 def _receiver_sigmas(import_map, records, offsets, meta, t_rows, g_rows):
     """The receiver's 1-sigmas in SI at its samples within the rows ``t_rows``: ((north, east, up), altitude);
     per pair of fixes when its velocity is differenced from them (data/import_velocity.py, with the truncation
     the load factor ``g_rows`` sizes), else the map's constants."""
     u, sigma = meta.units, meta.sigma
     h_sigma = u.si(float(sigma["altitude"]), "length")
-    if import_map.feeder("velocity").channels["velocity"].source != "fixes":
+    if not _from_fixes(import_map):
         return [u.si(float(sigma[c]), "speed") for c in VELOCITY_COLUMNS], h_sigma
     spec = import_map.feeder("velocity")
     rec, off = records[spec.name], offsets[spec.name].offset
@@ -407,7 +412,7 @@ def _assemble_logger(import_map, records, offsets, meta, t_rows, idx, release):
     for k, column in enumerate(VELOCITY_COLUMNS):   # the map's velocity is north, east, down
         columns[column] = placed(t_v, velocity[:, k] if k < 2 else -velocity[:, 2])
         columns[f"{column}_sigma"] = placed(t_v, v_sigma[k])
-    fixes = import_map.feeder("velocity").channels["velocity"].source == "fixes"
+    fixes = _from_fixes(import_map)
     sources["v_north, v_east, v_up"] = _source(import_map, "velocity", " north, east, −down, at its own samples"
                                                + (" (differences of pairs of fixes)" if fixes else ""))
     columns["altitude"] = placed(t_h, altitude)
