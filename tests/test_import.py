@@ -901,3 +901,20 @@ def test_fixes_that_are_not_latitude_and_longitude_are_refused_naming_the_cell(t
     doc["logger"]["gnss"]["channels"]["position"]["columns"] = ["lon", "alt"]   # altitude is no latitude
     err = _refused(capsys, tmp_path, doc)
     assert "fixes.csv" in err and "is beyond ±90°" in err and "column 'lon'" in err, err
+
+
+def test_rows_without_a_fix_are_left_out_and_a_half_empty_one_is_refused_by_its_row(tmp_path, windy, capsys):
+    """A receiver that lost its fix logs the time with empty position and altitude: those rows are left out
+    (and said); a row with a latitude but no longitude is a broken row, refused by its row in the file."""
+    doc, _ = _fixes_map(tmp_path, windy)
+    lines = (tmp_path / "fixes.csv").read_text().splitlines()
+    for i in range(200, 210):                       # one second without a fix
+        lines[i] = lines[i].split(",")[0] + ",,,"
+    (tmp_path / "fixes.csv").write_text("\n".join(lines) + "\n")
+    code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", tmp_path / "logger")
+    assert code == 0, err
+    assert "10 rows without a fix left out" in printed
+    lines[300] = ",".join(lines[300].split(",")[:2]) + ",,1000.0"
+    (tmp_path / "fixes.csv").write_text("\n".join(lines) + "\n")
+    err = _refused(capsys, tmp_path, doc, out=tmp_path / "again")
+    assert "fixes.csv" in err and "row 301, column 'lon'" in err and "the cell is empty" in err, err

@@ -71,6 +71,7 @@ class LoggerRecord:
     spec: object           # its LoggerSpec
     time: np.ndarray
     channels: dict         # name -> (n,) or (n, 3) array
+    rows_without_fix: int = 0   # a receiver's rows whose position and altitude were all empty (left out)
 
     @property
     def rate(self):
@@ -205,14 +206,15 @@ def _cells(spec, needed):
     return frame.iloc[:last]  # blank lines at the end are not samples
 
 
-def _row(spec, i):
-    return f"row {spec.skip_rows + 2 + i}"
+def _row(spec, i, frame=None):
+    """The file's row of data row ``i`` (of ``frame``, whose index keeps the file's numbering)."""
+    return f"row {spec.skip_rows + 2 + (i if frame is None else int(frame.index[i]))}"
 
 
 def _numbers(spec, frame, column):
     values, i, cell = parse_numbers(frame, column)
     if i is not None:
-        _fail_file(spec, f"{_row(spec, i)}, column '{column}'",
+        _fail_file(spec, f"{_row(spec, i, frame)}, column '{column}'",
                    "the cell is empty" if cell == "" else f"the cell {shown(cell)} is not a finite number",
                    "every cell of a mapped column must hold a number; remove or repair the row")
     return values
@@ -226,19 +228,19 @@ def _times(spec, frame):
     bad = stamps.isna().to_numpy()
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        _fail_file(spec, f"{_row(spec, i)}, column '{column}'",
+        _fail_file(spec, f"{_row(spec, i, frame)}, column '{column}'",
                    f"{shown(frame[column].iloc[i])} is not an ISO 8601 timestamp",
                    "write times as 2024-05-14T10:15:02.125Z (a zone-less time is taken as UTC), or give the "
                    "time column's numeric unit")
     return ((stamps - _EPOCH) / pd.Timedelta(1, "s")).to_numpy(dtype=float)
 
 
-def _check_fixes(spec, position, lat, lon):
+def _check_fixes(spec, position, lat, lon, frame):
     """Latitudes within ±90°, longitudes within ±360°, and fixes that move (a receiver without a fix logs one)."""
     for values, name, bound in ((lat, "latitude", 90.0), (lon, "longitude", 360.0)):
         if np.abs(values).max() > bound:
             i = int(np.argmax(np.abs(values) > bound))
-            _fail_file(spec, f"{_row(spec, i)}, column '{position.columns[name == 'longitude']}'",
+            _fail_file(spec, f"{_row(spec, i, frame)}, column '{position.columns[name == 'longitude']}'",
                        f"{name} {values[i]:.6g}° is beyond ±{bound:g}°", "map [latitude, longitude] in that order, "
                        "in degrees (unit = \"deg\") or radians (\"rad\")")
     if np.ptp(lat) == 0 and np.ptp(lon) == 0:
@@ -256,13 +258,17 @@ def read_logger(spec) -> LoggerRecord:
     for ch in spec.channels.values():
         needed += [(c, f"logger.{spec.name}.channels.{ch.name}") for c in ch.columns]
     frame = _cells(spec, needed)
+    dropped = 0
+    if any(ch.source == "fixes" for ch in spec.channels.values()):   # a row without a fix: the receiver lost it
+        no_fix = (frame[[c for c, _ in needed[1:]]].apply(lambda col: col.str.strip()) == "").all(axis=1)
+        frame, dropped = frame[~no_fix], int(no_fix.sum())
     if len(frame) < MIN_ROWS:
         _fail_file(spec, "", f"{len(frame)} data rows, fewer than {MIN_ROWS}", "give the logger's full record")
     t = _times(spec, frame)
     steps = np.diff(t)
     if (steps <= 0).any():
         i = int(np.flatnonzero(steps <= 0)[0]) + 1
-        _fail_file(spec, f"{_row(spec, i)}, column '{spec.time_column}'",
+        _fail_file(spec, f"{_row(spec, i, frame)}, column '{spec.time_column}'",
                    f"time not strictly increasing ({t[i - 1]:.10g} s then {t[i]:.10g} s)",
                    "sort the rows by time and remove repeated samples")
     channels = {}
@@ -270,7 +276,7 @@ def read_logger(spec) -> LoggerRecord:
         if ch.source == "fixes":   # (the logger holds nothing else) its rows become the pairs of fixes
             (lat, lon), alt = (_numbers(spec, frame, c) * ch.parts[0].factor for c in ch.parts[0].columns), \
                 _numbers(spec, frame, ch.parts[1].columns[0]) * ch.parts[1].factor + ch.parts[1].ground
-            _check_fixes(spec, ch.parts[0], lat, lon)
+            _check_fixes(spec, ch.parts[0], lat, lon, frame)
             t, channels["velocity"], channels["altitude"], channels["pair_span"] = pair_rows(t, lat, lon, alt)
             break
         if ch.parts:   # a track: ground speed, course (deg), vertical speed up → north, east, down
@@ -280,7 +286,7 @@ def read_logger(spec) -> LoggerRecord:
             continue
         columns = [_numbers(spec, frame, c) * ch.factor * ch.sign for c in ch.columns]
         channels[ch.name] = columns[0] + ch.ground if len(columns) == 1 else np.stack(columns, axis=1)
-    return LoggerRecord(spec, t, channels)
+    return LoggerRecord(spec, t, channels, dropped)
 
 
 # ---------------------------------------------------------------------------
@@ -510,8 +516,9 @@ def describe(result) -> list:
             other = "none" if math.isnan(al.runner_up) else f"{al.runner_up:.2f}"
             clock = (f"offset {off.offset:+.4f} ± {off.sigma:.4f} s (auto: correlation {al.correlation:.2f}, "
                      f"next best {other})")
-        rows = (f"{len(rec.time):,} pairs of fixes (rows) at {rec.rate:.1f} Hz" if "pair_span" in rec.channels
-                else f"{len(rec.time):,} rows at {rec.rate:.1f} Hz")
+        rows = (f"{len(rec.time):,} pairs of fixes (rows) at {rec.rate:.1f} Hz"
+                + (f", {rec.rows_without_fix:,} rows without a fix left out" if rec.rows_without_fix else "")
+                if "pair_span" in rec.channels else f"{len(rec.time):,} rows at {rec.rate:.1f} Hz")
         lines.append(f"{name}: {rec.spec.path.name}, {rows}, {clock}")
         if "pair_span" in rec.channels and rec.rate < MIN_PAIR_RATE:
             lines.append(f"warning: logger '{name}': fixes at {2 * rec.rate:.1f} Hz, fewer than {2 * MIN_PAIR_RATE:g}: "
