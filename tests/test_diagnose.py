@@ -167,6 +167,9 @@ def test_terms_that_gain_little_beside_an_unexplained_misfit_are_withdrawn(gains
     out, why = rule.withdrawn_terms(list(gains), rounds, share, left, OPTIONS)
     assert out == (list(gains) if withdrawn else [])
     assert ("less than 20" in why) == withdrawn and (why == "") == (not withdrawn)
+    if withdrawn:   # the gain it had, about the constructed one
+        gained = float(why.split("gained ")[1].split(" ")[0])
+        assert gained == pytest.approx(gains["added_mass"], abs=0.5) and "over its reference" in why, why
 
 
 @pytest.mark.parametrize("shares,clear", [((1.0, 0.05), True), ((1.0, 0.5), False), ((0.8, 0.05), False),

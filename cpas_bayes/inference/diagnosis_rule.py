@@ -300,11 +300,16 @@ def slivers_beside_unexplained(named, rounds, share, left, options):
     +58 to +74), and a term whose gain is this small leaves no misfit to speak of when it is the cause
     (the rule's 10 sits between clean tests' < 3 and the smallest simulated effects' ≥ 20). As in
     :func:`stand_ins_by_shape`, withdrawn only when every named term is such a one."""
-    chosen = {c.term: c.elpd_diff for r in rounds for c in r["checks"] if c.term == r.get("chosen")}
+    gains = chosen_gains(rounds)
     if named and left and share < options.min_share and \
-            all(chosen.get(t, math.inf) < SLIVER * options.min_gain for t in named):
+            all(gains.get(t, math.inf) < SLIVER * options.min_gain for t in named):
         return list(named)
     return []
+
+
+def chosen_gains(rounds):
+    """{term: its elpd gain over its reference} of the term each round of forward selection chose."""
+    return {c.term: c.elpd_diff for r in rounds for c in r["checks"] if c.term == r.get("chosen")}
 
 
 def withdrawn_terms(named, rounds, share, left, options):
@@ -315,8 +320,10 @@ def withdrawn_terms(named, rounds, share, left, options):
         return withdrawn, (f"{', '.join(withdrawn)} withdrawn: named for taking the discrepancy's shape over, alone "
                            f"it explains {100 * share:.0f} % of the discrepancy's gain (a stand-in)")
     if withdrawn := slivers_beside_unexplained(named, rounds, share, left, options):
-        return withdrawn, (f"{', '.join(withdrawn)} withdrawn: each gained less than "
-                           f"{SLIVER * options.min_gain:g} and together they explain {100 * share:.0f} % of the "
+        gains = chosen_gains(rounds)
+        return withdrawn, (f"{', '.join(withdrawn)} withdrawn: gained {', '.join(f'{gains[t]:.1f}' for t in withdrawn)}"
+                           f" over {'its reference' if len(withdrawn) == 1 else 'their references'}, less than "
+                           f"{SLIVER * options.min_gain:g}, and the named terms explain {100 * share:.0f} % of the "
                            "discrepancy's gain, the rest a misfit of its own (a sliver of it, not its cause)")
     return [], ""
 
