@@ -914,6 +914,8 @@ def test_rows_without_a_fix_are_left_out_and_a_half_empty_one_is_refused_by_its_
     code, printed, err = run(capsys, "import", write_map(tmp_path, doc), "--out", tmp_path / "logger")
     assert code == 0, err
     assert "10 rows without a fix left out" in printed
+    report = json.loads((tmp_path / "logger" / REPORT_NAME).read_text())["loggers"]["gnss"]
+    assert report["rows_are"] == "pairs of fixes" and report["rows_without_fix"] == 10
     lines[300] = ",".join(lines[300].split(",")[:2]) + ",,1000.0"
     (tmp_path / "fixes.csv").write_text("\n".join(lines) + "\n")
     err = _refused(capsys, tmp_path, doc, out=tmp_path / "again")

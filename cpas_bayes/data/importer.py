@@ -107,6 +107,8 @@ class ImportResult:
             "line_stretch": {"time_after_release_s": self.line_stretch.time, "sigma_s": self.line_stretch.sigma,
                              "terms_s": self.line_stretch.terms, "given_in_map": self.line_stretch_given},
             "loggers": {name: {"file": str(rec.spec.path), "rows": len(rec.time), "rate_hz": rec.rate,
+                               **({"rows_are": "pairs of fixes", "rows_without_fix": rec.rows_without_fix}
+                                  if "pair_span" in rec.channels else {}),
                                "clock": rec.spec.clock, "offset_s": self.offsets[name].offset,
                                "offset_sigma_s": self.offsets[name].sigma, "offset_method": self.offsets[name].method,
                                **_alignment_fields(self.offsets[name].alignment),
