@@ -879,7 +879,7 @@ def test_fix_pairs_skip_a_dropped_fix():
 
 @pytest.mark.parametrize("edit, expected", [
     (lambda d: d["test"]["sigma"].pop("position"), "key 'test.sigma.position': is missing"),
-    (lambda d: d["test"]["sigma"].update(position=-0.1), "key 'test.sigma.position': must be a positive number"),
+    (lambda d: d["test"]["sigma"].update(position=-0.1), "key 'test.sigma.position': must be positive, got -0.1"),
     (lambda d: d["test"]["sigma"].update(v_north=0.1), "key 'test.sigma.v_north': the velocity is differenced"),
     (lambda d: d["logger"]["gnss"]["channels"].pop("altitude"), "key 'logger.gnss.channels.altitude': is missing"),
     (lambda d: d["logger"]["gnss"]["channels"].update(velocity={"columns": ["lat", "lon", "alt"], "unit": "m/s"}),

@@ -491,11 +491,12 @@ def _check_channels(m, loggers, test_doc, prefix, meta, mode):
                    "package reconstructs (air_data = \"reconstruct\", the default with GNSS velocity)",
                    f"remove qbar from [{prefix}sigma] and give v_north, v_east, v_up and altitude; or write "
                    "air_data = \"ground_speed\" for q̄ from the ground speed (no wind, the receiver's lag kept)")
-        if _from_fixes(loggers) and (given := [c for c in VELOCITY_SIGMAS if c in sigma]):
+        fixes = fixes_feed_velocity(loggers)
+        if fixes and (given := [c for c in VELOCITY_SIGMAS if c in sigma]):
             m.fail(f"{prefix}sigma.{given[0]}", "the velocity is differenced from the receiver's fixes, whose 1-sigmas "
                    "follow from position's and altitude's", f"remove {', '.join(given)} from [{prefix}sigma]")
         needed += [(c, "in the bundle's speed unit", "the receiver's velocity accuracy, e.g. 0.1 m/s")
-                   for c in VELOCITY_SIGMAS if not _from_fixes(loggers)]
+                   for c in VELOCITY_SIGMAS if not fixes]
         needed += [("altitude", "in the bundle's length unit", "e.g. 3 m for GNSS, 1 m for a barometer")]
     else:
         needed += [("qbar", "in the bundle's units", "e.g. 2 % of q̄")]
@@ -513,7 +514,8 @@ def _check_channels(m, loggers, test_doc, prefix, meta, mode):
 VELOCITY_SIGMAS = ("v_north", "v_east", "v_up")
 
 
-def _from_fixes(loggers):
+def fixes_feed_velocity(loggers):
+    """Whether a receiver's velocity is differenced from its fixes (data/import_velocity.py)."""
     return any(lg.has("velocity") and lg.channels["velocity"].source == "fixes" for lg in loggers)
 
 
@@ -543,7 +545,7 @@ def read_import_map(path, folder) -> ImportMap:
     loggers = tuple(_logger(m, name, entry, quantities) for name, entry in raw.items())
     mode = _air_data_mode(m, doc, loggers)
     _check_channels(m, loggers, test_doc, prefix, meta, mode)
-    position_sigma = checked_position_sigma(_Map(test_path), position_sigma, _from_fixes(loggers) and mode == "reconstruct",
+    position_sigma = checked_position_sigma(_Map(test_path), position_sigma, fixes_feed_velocity(loggers) and mode == "reconstruct",
                                      prefix)
     bundle_metadata(replace(preliminary, air_data=mode), None, folder)   # what this kind of bundle refuses
 

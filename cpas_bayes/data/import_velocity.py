@@ -26,11 +26,9 @@ more than 1.5 median intervals (a dropped fix) is not formed: its first fix is l
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from cpas_bayes.core.inputs import shown
+from cpas_bayes.core.units import STANDARD_GRAVITY
 
 TRACK = {"ground_speed", "course"}
 POSITION = "position"
@@ -97,10 +95,7 @@ def checked_position_sigma(m, value, needed, prefix):
     if value is not None and not needed:
         m.fail(where, "applies to a logger bundle whose velocity is differenced from a receiver's fixes (a position "
                "channel)", "remove it")
-    if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                              or not 0 < value < math.inf):
-        m.fail(where, f"must be a positive number, got {shown(value)}", "give the fixes' 1-sigma, e.g. 0.05 (m)")
-    return None if value is None else float(value)
+    return m.number({POSITION: value}, POSITION, where, positive=True)   # the map's own check of a number
 
 
 def local_metres(latitude, longitude):
@@ -149,19 +144,17 @@ def pair_truncation(time, accel, middle, span, latencies=(0.0,)):
     Δ²·a_v/8, a_v ≈ |ā − g0| the pair's mean vertical acceleration in a steep descent. The instant a pair
     shows is its stamp less the receiver's latency, which the reconstruction fits later: the largest over
     ``latencies`` (s) is taken."""
-    from cpas_bayes.core.units import STANDARD_GRAVITY
-
     velocity, altitude = np.zeros(len(middle)), np.zeros(len(middle))
     for latency in latencies:
-        shown = middle - latency
-        lo = np.searchsorted(time, shown - span / 2)
-        hi = np.searchsorted(time, shown + span / 2, side="right")
+        instant = middle - latency
+        lo = np.searchsorted(time, instant - span / 2)
+        hi = np.searchsorted(time, instant + span / 2, side="right")
         for i, (a, b) in enumerate(zip(lo, hi)):
             if b - a < 3:
                 continue
             t, dev = time[a:b], accel[a:b] - accel[a:b].mean()
             swept = np.concatenate([[0.0], np.cumsum(0.5 * (dev[1:] + dev[:-1]) * np.diff(t))])
-            velocity[i] = max(velocity[i], abs(np.mean(swept - np.interp(shown[i], t, swept))))
+            velocity[i] = max(velocity[i], abs(np.mean(swept - np.interp(instant[i], t, swept))))
             altitude[i] = max(altitude[i], span[i] ** 2 * abs(accel[a:b].mean() - STANDARD_GRAVITY) / 8.0)
     return velocity, altitude
 

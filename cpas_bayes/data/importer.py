@@ -52,7 +52,7 @@ from cpas_bayes.data.bundle import FlightTest, read_bundle
 from cpas_bayes.data.bundle_csv import parse_numbers, skip_lines
 from cpas_bayes.data.bundle_write import write_bundle
 from cpas_bayes.data.import_clocks import clock_offsets, find_events, load_factor
-from cpas_bayes.data.import_map import ISO, bundle_metadata, read_import_map
+from cpas_bayes.data.import_map import ISO, bundle_metadata, fixes_feed_velocity, read_import_map
 from cpas_bayes.data.import_velocity import pair_rows, pair_sigmas, pair_truncation
 from cpas_bayes.data.limits import MAX_CSV_BYTES, MAX_DURATION
 from cpas_bayes.data.reduction import check_reducible
@@ -261,7 +261,8 @@ def read_logger(spec) -> LoggerRecord:
         needed += [(c, f"logger.{spec.name}.channels.{ch.name}") for c in ch.columns]
     frame = _cells(spec, needed)
     dropped = 0
-    if any(ch.source == "fixes" for ch in spec.channels.values()):   # a row without a fix: the receiver lost it
+    fixes = spec.channels["velocity"] if spec.has("velocity") and spec.channels["velocity"].source == "fixes" else None
+    if fixes:   # a row without a fix: the receiver lost it
         no_fix = (frame[[c for c, _ in needed[1:]]].apply(lambda col: col.str.strip()) == "").all(axis=1)
         frame, dropped = frame[~no_fix], int(no_fix.sum())
     if len(frame) < MIN_ROWS:
@@ -274,13 +275,14 @@ def read_logger(spec) -> LoggerRecord:
                    f"time not strictly increasing ({t[i - 1]:.10g} s then {t[i]:.10g} s)",
                    "sort the rows by time and remove repeated samples")
     channels = {}
+    if fixes:   # the logger holds nothing else (import_velocity.velocity_from_fixes): its rows become the pairs
+        position, altitude = fixes.parts
+        lat, lon = (_numbers(spec, frame, c) * position.factor for c in position.columns)
+        _check_fixes(spec, position, lat, lon, frame)
+        alt = _numbers(spec, frame, altitude.columns[0]) * altitude.factor + altitude.ground
+        t, channels["velocity"], channels["altitude"], channels["pair_span"] = pair_rows(t, lat, lon, alt)
+        return LoggerRecord(spec, t, channels, dropped)
     for ch in spec.channels.values():
-        if ch.source == "fixes":   # (the logger holds nothing else) its rows become the pairs of fixes
-            (lat, lon), alt = (_numbers(spec, frame, c) * ch.parts[0].factor for c in ch.parts[0].columns), \
-                _numbers(spec, frame, ch.parts[1].columns[0]) * ch.parts[1].factor + ch.parts[1].ground
-            _check_fixes(spec, ch.parts[0], lat, lon, frame)
-            t, channels["velocity"], channels["altitude"], channels["pair_span"] = pair_rows(t, lat, lon, alt)
-            break
         if ch.parts:   # a track: ground speed, course (deg), vertical speed up → north, east, down
             speed, course, up = (_numbers(spec, frame, p.columns[0]) * p.factor * p.sign for p in ch.parts)
             channels[ch.name] = np.column_stack([speed * np.cos(np.radians(course)),
@@ -335,13 +337,14 @@ def _interpolated(import_map, records, offsets, channel, times):
     return np.interp(times, rec.time + off, values)
 
 
-def _own_samples(import_map, records, offsets, channel, lo, hi):
-    """A channel's own samples from ``lo`` to ``hi`` on the reference clock: (times, values)."""
+def _own_samples(import_map, records, offsets, channel, lo, hi, key=None):
+    """A channel's own samples from ``lo`` to ``hi`` on the reference clock: (times, values); ``key``: another of
+    its logger record's arrays at the same samples (a pair of fixes' span)."""
     spec = import_map.feeder(channel)
     rec = records[spec.name]
     t = rec.time + offsets[spec.name].offset
     keep = (t >= lo) & (t <= hi)
-    return t[keep], rec.channels[channel][keep]
+    return t[keep], rec.channels[key or channel][keep]
 
 
 def _source(import_map, channel, how=""):
@@ -367,26 +370,17 @@ def _snapped(times, rows):
     return np.where(np.abs(nearest - times) <= SNAP, nearest, times)
 
 
-def _from_fixes(import_map):
-    """Whether the receiver's velocity is differenced from its fixes (data/import_velocity.py)."""
-    return import_map.feeder("velocity").channels["velocity"].source == "fixes"
-
-
 def _receiver_sigmas(import_map, records, offsets, meta, t_rows, g_rows):
     """The receiver's 1-sigmas in SI at its samples within the rows ``t_rows``: ((north, east, up), altitude);
     per pair of fixes when its velocity is differenced from them (data/import_velocity.py, with the truncation
     the load factor ``g_rows`` sizes), else the map's constants."""
     u, sigma = meta.units, meta.sigma
     h_sigma = u.si(float(sigma["altitude"]), "length")
-    if not _from_fixes(import_map):
+    if not fixes_feed_velocity(import_map.loggers):
         return [u.si(float(sigma[c]), "speed") for c in VELOCITY_COLUMNS], h_sigma
-    spec = import_map.feeder("velocity")
-    rec, off = records[spec.name], offsets[spec.name].offset
-    t = rec.time + off
-    keep = (t >= t_rows[0]) & (t <= t_rows[-1])
-    span = rec.channels["pair_span"][keep]
+    t, span = _own_samples(import_map, records, offsets, "velocity", t_rows[0], t_rows[-1], key="pair_span")
     latencies = np.arange(LATENCY_RANGE[0], LATENCY_RANGE[1] + 1e-9, 0.05)   # the reconstruction's prior range
-    truncation = pair_truncation(t_rows, np.asarray(g_rows, float) * G0, t[keep], span, latencies)
+    truncation = pair_truncation(t_rows, np.asarray(g_rows, float) * G0, t, span, latencies)
     across, up, h_sigma = pair_sigmas(span, u.si(import_map.position_sigma, "length"), h_sigma, truncation)
     return [across, across, up], h_sigma
 
@@ -410,17 +404,16 @@ def _assemble_logger(import_map, records, offsets, meta, t_rows, idx, release):
     u, sigma = meta.units, meta.sigma
     g_rec = records[import_map.g_logger]
     accel = g_rec.spec.channels["accel"]
-    columns = {"time": times - release, "G": placed(t_rows, load_factor(g_rec.channels["accel"], sigma["G"])[idx]),
-               "G_sigma": placed(t_rows, float(sigma["G"]))}
+    g_rows = load_factor(g_rec.channels["accel"], sigma["G"])[idx]
+    columns = {"time": times - release, "G": placed(t_rows, g_rows), "G_sigma": placed(t_rows, float(sigma["G"]))}
     sources = {"time": f"{g_rec.spec.name}: {g_rec.spec.time_column} − release, with the receiver's samples",
                "G": _source(import_map, "accel",
                             " magnitude less its noise bias / g0" if len(accel.columns) == 3 else " / g0")}
-    v_sigma, h_sigma = _receiver_sigmas(import_map, records, offsets, meta, t_rows,
-                                        load_factor(g_rec.channels["accel"], sigma["G"])[idx])
+    v_sigma, h_sigma = _receiver_sigmas(import_map, records, offsets, meta, t_rows, g_rows)
     for k, column in enumerate(VELOCITY_COLUMNS):   # the map's velocity is north, east, down
         columns[column] = placed(t_v, velocity[:, k] if k < 2 else -velocity[:, 2])
         columns[f"{column}_sigma"] = placed(t_v, v_sigma[k])
-    fixes = _from_fixes(import_map)
+    fixes = fixes_feed_velocity(import_map.loggers)
     sources["v_north, v_east, v_up"] = _source(import_map, "velocity", " north, east, −down, at its own samples"
                                                + (" (differences of pairs of fixes)" if fixes else ""))
     columns["altitude"] = placed(t_h, altitude)
