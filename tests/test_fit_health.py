@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from cpas_bayes.inference import fit_health
-from cpas_bayes.stats.distributions import LogNormal, TruncNormal, Uniform
+from cpas_bayes.stats.distributions import LogNormal, Normal, TruncNormal, Uniform
 
 
 def _model(*params):
@@ -49,6 +49,23 @@ def test_bundle_priors_point_to_the_bundle_not_a_priors_file():
     w = fit_health.prior_bound_warnings(_model(("vehicle_cds", prior)),
                                         {"vehicle_cds": 3.5 - np.abs(RNG.normal(0, 0.005, 4000))})
     assert len(w) == 1 and "test.toml" in w[0]["message"]
+
+
+def test_a_start_or_vehicle_value_the_data_place_far_from_the_bundle_warns():
+    start = Normal(9.0, 0.05)          # the bundle's stage start ± its start_sigma
+    model = _model(("D3.s2.start", start), ("vehicle_weight", Normal(20000.0, 100.0)))
+    w = fit_health.stated_value_warnings(model, {"D3.s2.start": RNG.normal(9.48, 0.01, 4000)})
+    assert [(x["code"], x["parameter"]) for x in w] == [("stated_value", "D3.s2.start")]
+    assert "D3 stage 2 starts at 9.48" in w[0]["message"] and "9.6 stated sigmas after" in w[0]["message"]
+    assert "test.toml" in w[0]["message"]
+    heavy = fit_health.stated_value_warnings(model, {"vehicle_weight": RNG.normal(19500.0, 20.0, 4000)})
+    assert len(heavy) == 1 and "5.0 stated sigmas below" in heavy[0]["message"]
+    # within 4 stated sigmas, or where the data leave the value to the bundle's prior: nothing to say
+    assert fit_health.stated_value_warnings(model, {"D3.s2.start": RNG.normal(9.15, 0.01, 4000)}) == []
+    assert fit_health.stated_value_warnings(model, {"D3.s2.start": RNG.normal(9.48, 0.03, 4000)}) == []
+    # a parameter that is not the bundle's stated value is not judged against its prior here
+    assert fit_health.stated_value_warnings(_model(("D3.s2.n_p", LogNormal(8.0, 0.7, 0.5, 60.0))),
+                                            {"D3.s2.n_p": RNG.normal(40.0, 0.5, 4000)}) == []
 
 
 def test_error_multipliers_above_two_warn_by_channel():
@@ -131,8 +148,30 @@ def test_a_prior_bound_below_the_truth_warns_naming_parameter_and_bound(drogue, 
     assert fit.summary["warnings"] == warnings
 
 
-def test_the_clean_example_fit_has_no_warning(drogue):
-    fit, warnings = _fit_with_checks(*drogue)
+def test_a_stage_start_stated_half_a_second_early_is_said_and_the_fit_still_finds_it(drogue, clean_fit):
+    test, _ = drogue
+    d3 = test.parachutes[0]
+    early = replace(d3.stages[1], start=d3.stages[1].start - 0.48)      # 9.6 of its 0.05 s sigma early
+    test = replace(test, parachutes=(replace(d3, stages=(d3.stages[0], early)),) + test.parachutes[1:])
+    from cpas_bayes.data.reduction import reduce_test
+
+    fit, warnings = _fit_with_checks(test, reduce_test(test))
+    said = [w for w in warnings if w["code"] == "stated_value"]
+    assert [w["parameter"] for w in said] == ["D3.s2.start"], warnings
+    assert "D3 stage 2 (full open) starts at" in said[0]["message"] and "after the bundle's" in said[0]["message"]
+    # the data, not the bundle, place the start: where the fit of the bundle as written puts it
+    start = fit.summary["parachutes"]["D3"]["stages"][1]["start"]
+    clean = clean_fit[0].summary["parachutes"]["D3"]["stages"][1]["start"]
+    assert abs(start["q50"] - clean["q50"]) < 3 * np.hypot(start["sd"], clean["sd"])
+
+
+@pytest.fixture(scope="module")
+def clean_fit(drogue):
+    return _fit_with_checks(*drogue)
+
+
+def test_the_clean_example_fit_has_no_warning(clean_fit):
+    fit, warnings = clean_fit
     assert warnings == []
     stage = fit.summary["parachutes"]["D3"]["stages"][0]
     assert 0.1 < stage["t_f"]["q50"] < stage["t_fp"]["q50"] < 1.0     # fill times in seconds beside n and n_p

@@ -10,6 +10,13 @@ has none. The checks and their thresholds:
     than 5 % of the draws lie within ¼ posterior sd of the bound. A normal
     posterior whose centre sits 2 sd inside a bound puts 1.7 % there, one cut
     by the bound 12 % or more: the bound, not the data, decides the value.
+``stated_value``
+    A stage start or the vehicle's weight or drag area that the data place more than 4 stated sigmas
+    from the bundle's value, with a posterior sd under ½ the stated sigma (the data, not the bundle,
+    decide it): a start on another clock or a typo, which the fit then corrects without saying so. The
+    bundle's values are the truth plus their stated 1-sigma noise, so a correct bundle puts one of a
+    fit's 4–11 such parameters there with probability under 0.4 % (under 0.07 % where the data fix the
+    value far more closely than its sigma, as they fix the starts).
 ``error_multiplier``
     A fitted noise multiplier (posterior median) above 2: the residuals are
     more than twice the stated 1-sigma, so either the sigmas or the model are
@@ -62,6 +69,7 @@ ESS_MIN = 400
 PHYSICAL_LIMITS = {"ck": (1.0, None), "eps": (0.0, 1.0)}
 FROM_BUNDLE = ("vehicle_weight", "vehicle_cds")   # priors built from the bundle's stated values and sigmas
 MIN_SAMPLES_PER_FILL = 8
+STATED_CONFLICT = 4.0      # stated sigmas between the bundle's value and the posterior median
 MULTIPLIERS = {"noise_acc": "accelerometer", "noise_lc": "load-cell", "noise_gnss": "GNSS receiver"}
 
 
@@ -103,6 +111,38 @@ def prior_bound_warnings(model, draws):
                     f"{p.name} is piled against its prior's {side} bound {bound:g}{unit}{_as_coefficient(model, p.name, bound)}"
                     f" (median {np.median(x):.4g}{unit}, {100 * share:.0f} % of draws within {EDGE_BAND:g} sd of "
                     f"it): the prior, not the data, sets it; {fix}", p.name))
+    return out
+
+
+def stated_value_warnings(model, draws):
+    """``stated_value`` warnings: a stage start or a vehicle value that the data place far from the bundle's."""
+    out = []
+    labels = {f"{q.id}.{stage_tag(k)}": st.label
+              for q in getattr(model, "parachutes", ()) for k, st in enumerate(q.stages)}
+    for p in model.parameters:
+        is_start = p.name.endswith(".start")
+        x = np.asarray(draws.get(p.name, ()), float).ravel()
+        if not (is_start or p.name in FROM_BUNDLE) or x.size < 10:
+            continue
+        stated, stated_sd = float(p.prior.ppf(0.5)), _prior_sd(p.prior)
+        median, sd = float(np.median(x)), float(x.std())
+        z = (median - stated) / stated_sd
+        if not (abs(z) > STATED_CONFLICT and sd < INFORMATIVE * stated_sd):
+            continue
+        q05, q95 = np.quantile(x, (0.05, 0.95))
+        unit = f" {p.unit}" if getattr(p, "unit", "") else ""
+        if is_start:
+            chute, tag = p.name.split(".")[:2]
+            label = labels.get(f"{chute}.{tag}")
+            what = f"{chute} stage {tag[1:]}{f' ({label})' if label else ''} starts"
+            side = "after" if z > 0 else "before"
+        else:
+            what, side = f"{p.name} is", "above" if z > 0 else "below"
+        out.append(warning(
+            "stated_value",
+            f"{what} at {median:.4g}{unit} by the data (90 %: {q05:.4g} to {q95:.4g}), {abs(z):.1f} stated sigmas "
+            f"{side} the bundle's {stated:.4g} ± {stated_sd:.2g}{unit}: correct the value or its sigma in the "
+            "bundle's test.toml (a time on another clock, a typo)", p.name))
     return out
 
 
@@ -229,6 +269,7 @@ def fit_warnings(model, tree, diagnostics, ppc_table=None):
     draws = {name: np.asarray(post[name].values, float).ravel() for name in post.data_vars}
     out = reading_health_warnings(model.test)   # the readings' own problems first: they explain the rest
     out += prior_bound_warnings(model, draws)
+    out += stated_value_warnings(model, draws)
     out += multiplier_warnings(draws)
     if ppc_table is not None:
         out += ppc_warnings(ppc_table)
