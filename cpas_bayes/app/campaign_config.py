@@ -83,7 +83,7 @@ ess_target = 1000             # 100–100,000
 # stop = "tau"                # or: converged when longer than tau_factor·τ
 # tau_factor = 50             # only with stop = "tau"
 check_every = 500             # steps between convergence checks and checkpoints (10–10,000)
-proposal = "pooled"           # with stop = "ess": an independence move fitted after a warm-up to all ensembles' draws; "adaptive": to each one's; "de": DE alone
+proposal = "pooled"           # with stop = "ess": a move fitted to all ensembles' warm-up; "adaptive": each its own; "de"
 coordinates = "model"         # walkers move in θ as written; "drag_area": reefed drag areas ε·CDS_o in place of ε
 
 [diagnose]
