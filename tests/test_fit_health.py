@@ -63,6 +63,11 @@ def test_a_start_or_vehicle_value_the_data_place_far_from_the_bundle_warns():
     # within 4 stated sigmas, or where the data leave the value to the bundle's prior: nothing to say
     assert fit_health.stated_value_warnings(model, {"D3.s2.start": RNG.normal(9.15, 0.01, 4000)}) == []
     assert fit_health.stated_value_warnings(model, {"D3.s2.start": RNG.normal(9.48, 0.03, 4000)}) == []
+    # a start within half its stage's fill time of the stated one: an opening's own shape may put it there
+    within_fill = {"D3.s2.start": RNG.normal(9.48, 0.01, 4000), "D3.s2.t_fp": np.full(4000, 1.2)}
+    assert fit_health.stated_value_warnings(model, within_fill) == []
+    within_fill["D3.s2.t_fp"] = np.full(4000, 0.8)
+    assert len(fit_health.stated_value_warnings(model, within_fill)) == 1
     # a parameter that is not the bundle's stated value is not judged against its prior here
     assert fit_health.stated_value_warnings(_model(("D3.s2.n_p", LogNormal(8.0, 0.7, 0.5, 60.0))),
                                             {"D3.s2.n_p": RNG.normal(40.0, 0.5, 4000)}) == []
