@@ -36,7 +36,7 @@ class CampaignConfig:
     fit_ess_target: int = ESS_TARGET
     fit_tau_factor: float = 50.0
     fit_check_every: int = 500
-    fit_proposal: str = "pooled"          # ESS rule: "pooled" or "adaptive" (independence move after a warm-up) or "de"
+    fit_proposal: str = "adaptive"        # ESS rule: "adaptive" (independence move after a warm-up) or "de"
     fit_coordinates: str = "grown"        # where the walkers move (inference.coordinates); "model": θ as written
     workers: int = 2
     diagnose: str = "screen"              # "screen", "full" or "off"
@@ -83,7 +83,7 @@ ess_target = 1000             # 100–100,000
 # stop = "tau"                # or: converged when longer than tau_factor·τ
 # tau_factor = 50             # only with stop = "tau"
 check_every = 500             # steps between convergence checks and checkpoints (10–10,000)
-proposal = "pooled"           # with stop = "ess": a move fitted to all ensembles' warm-up; "adaptive": each its own; "de"
+proposal = "adaptive"         # with stop = "ess": an independence move fitted after a warm-up; "de": DE alone
 coordinates = "model"         # walkers move in θ as written; "drag_area": reefed drag areas ε·CDS_o in place of ε
 
 [diagnose]

@@ -275,10 +275,10 @@ def synth_command(scenario, effect, magnitude, seed, out):
 @click.option("--max-steps", type=STEP_CAPS, default=20000, show_default=True,
               help="Steps per ensemble at most: a fit that reaches it stops and says NOT converged (a cluster "
                    "without load cells can need hours to mix between pairings).")
-@click.option("--proposal", type=click.Choice(PROPOSALS), default="pooled", show_default=True,
-              help="With --stop ess: 'pooled' mixes in an independence move fitted to all ensembles' warm-up "
-                   "draws (τ ~15× shorter; 4× the draws per fit end the warm-up sooner); 'adaptive' the same move "
-                   "fitted to each ensemble's own draws; 'de' differential evolution alone.")
+@click.option("--proposal", type=click.Choice(PROPOSALS), default="adaptive", show_default=True,
+              help="With --stop ess: 'adaptive' mixes in an independence move fitted to each ensemble's draws "
+                   "after a warm-up (τ ~15× shorter); 'pooled' the same move fitted to all ensembles' warm-up "
+                   "draws (the diagnosis' fits: faster across a slow direction); 'de' differential evolution alone.")
 @click.option("--coordinates", type=click.Choice(COORDINATES), default="grown", show_default=True,
               help="Where the walkers move (same posterior): 'grown' drag areas ε·CDS_o, times to peak (drag area "
                    "grown if cut short); 'drag_area', 'peak_time' one of these; 'model' θ as written (README).")

@@ -19,9 +19,9 @@ Procedure
    better than the stretch move in 30–40 dimensions but, on these near-normal
    posteriors, only at the random-walk rate (τ ≈ D/0.3 steps: 90 for a
    two-Drogue test, 140 for a three-Main one, whatever the coordinates; measured
-   alike in log coordinates). Under the ESS rule with ``proposal="pooled"``
-   (the default) the ensembles then fit one multivariate-t independence proposal
-   to all their draws (``"adaptive"``: each its own) and mix it in (70 %), which leaves τ at 5–20 steps
+   alike in log coordinates). Under the ESS rule with ``proposal="adaptive"``
+   (the default) each ensemble then fits a multivariate-t independence proposal
+   to its own draws and mixes it in (70 %), which leaves τ at 5–20 steps
    (:mod:`cpas_bayes.inference.warm_up`): one DE chunk of warm-up, adaptation chunks until the
    acceptance stops rising, then the proposal frozen, the warm-up dropped and the
    ESS rule run on the rest. The
@@ -91,7 +91,7 @@ class SamplerOptions:
     ess_target: float = ESS_TARGET    # ESS rule: bulk and tail ESS of every parameter at least this ...
     rhat_target: float = RHAT_TARGET  # ... and its R-hat at most this
     stop_on: tuple = ()               # ESS rule: only these parameters' ESS and R-hat (default: every one)
-    proposal: str = "pooled"          # ESS rule: an independence move after a warm-up (inference.warm_up); "de" alone
+    proposal: str = "adaptive"        # ESS rule: an independence move after a warm-up (inference.warm_up); "de" alone
     coordinates: str = "grown"        # where the walkers move (inference.coordinates): "model" is θ itself
     warm_up: str = "plateau"          # the adaptive proposal's warm-up (inference.warm_up): "plateau" or "fixed"
     map_starts: int = 4

@@ -16,11 +16,9 @@ import numpy as np
 WARM_UPS = ("plateau", "fixed")
 
 # warm_up="plateau": the warm-up ends when the independence proposal stops improving, the chunk's acceptance
-# risen by less than this share over the chunk before's, after at least MIN_ADAPTATIONS chunks and at most
-# MAX_ADAPTATIONS (a posterior the proposal never fits keeps DE's share). On the examples, seed 0, 125-step
-# chunks, the proposal fitted to every ensemble's draws (pooled): Drogue 0.31 → 0.41 → 0.43, Main 0.15 → 0.37 →
-# 0.44 → 0.46; fitted to each ensemble's own, a quarter of the draws, it improves more slowly: Drogue 0.17 →
-# 0.23 → 0.30 → 0.33 → 0.35, Main 0.12 → 0.16 → 0.20 → 0.24 → 0.27 → 0.30.
+# risen by less than this share over the chunk before's (on the examples, seed 0, 125-step chunks: the Drogue's
+# rose 0.20 → 0.26 → 0.34 → 0.38 → 0.41 → 0.42, the Main's by 8–30 % a chunk until its sixth), after at least
+# MIN_ADAPTATIONS chunks and at most MAX_ADAPTATIONS (a posterior the proposal never fits keeps DE's share).
 ACCEPTANCE_RTOL = 0.10
 MIN_ADAPTATIONS = 2
 MAX_ADAPTATIONS = 12
@@ -52,8 +50,7 @@ def warm_up_schedule(options):
 
     ``warm_up="plateau"`` (the default): chunks of C/4 (at least :data:`PLATEAU_CHUNK` stored steps), the DE
     chunk twice that, and adaptation until the acceptance stops rising (:data:`ACCEPTANCE_RTOL`). The fixed
-    warm-up before it spent 1,000 of the two-Drogue example's 1,250 steps; this one stops after 625 with the
-    pooled proposal (875 with each ensemble's own).
+    warm-up before it spent 1,000 of the two-Drogue example's 1,250 steps; this one stops after 875.
     ``"fixed"``: a DE chunk of C, exactly two adaptation chunks of C/2, checks every C/2 (the diagnosis's short
     fits, whose detection rates were measured with it).
     """
@@ -80,11 +77,10 @@ def fit_proposals(stores, window, pooled=False):
     """Each ensemble's independence proposal fitted to its draws of ``window`` (stored steps lo, hi).
     ``pooled``: one proposal fitted to every ensemble's window.
 
-    Pooled (the default), each fit has four times the draws, so the proposal nears the posterior's shape in
-    fewer adaptation chunks (the warm-up ends sooner, at a higher acceptance), and an ensemble that has not
-    yet crossed a slow direction of the posterior gets a proposal that reaches where the others are; each
-    chain's kernel is still fixed after the warm-up (its draws are dropped), so every kept draw comes from
-    one valid kernel, and R-hat still compares ensembles started apart."""
+    Pooled, an ensemble that has not yet crossed a slow direction of the posterior gets a proposal that
+    reaches where the others are; each chain's kernel is still fixed after the warm-up (its draws are
+    dropped), so every kept draw comes from one valid kernel, and R-hat still compares ensembles started
+    apart."""
     from cpas_bayes.inference.moves import fit_proposal
 
     log_columns = getattr(stores[0].model, "log_scale", None)   # a bare log density: θ coordinates
