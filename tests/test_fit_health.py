@@ -154,12 +154,12 @@ def test_a_prior_bound_below_the_truth_warns_naming_parameter_and_bound(drogue, 
 
 
 def test_a_stage_start_stated_half_a_second_early_is_said_and_the_fit_still_finds_it(drogue, clean_fit):
+    from cpas_bayes.data.reduction import reduce_test
+
     test, _ = drogue
     d3 = test.parachutes[0]
     early = replace(d3.stages[1], start=d3.stages[1].start - 0.48)      # 9.6 of its 0.05 s sigma early
     test = replace(test, parachutes=(replace(d3, stages=(d3.stages[0], early)),) + test.parachutes[1:])
-    from cpas_bayes.data.reduction import reduce_test
-
     fit, warnings = _fit_with_checks(test, reduce_test(test))
     said = [w for w in warnings if w["code"] == "stated_value"]
     assert [w["parameter"] for w in said] == ["D3.s2.start"], warnings

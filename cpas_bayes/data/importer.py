@@ -261,7 +261,7 @@ def read_logger(spec) -> LoggerRecord:
         needed += [(c, f"logger.{spec.name}.channels.{ch.name}") for c in ch.columns]
     frame = _cells(spec, needed)
     dropped = 0
-    fixes = spec.channels["velocity"] if spec.has("velocity") and spec.channels["velocity"].source == "fixes" else None
+    fixes = spec.channels["velocity"] if fixes_feed_velocity((spec,)) else None
     if fixes:   # a row without a fix: the receiver lost it
         no_fix = (frame[[c for c, _ in needed[1:]]].apply(lambda col: col.str.strip()) == "").all(axis=1)
         frame, dropped = frame[~no_fix], int(no_fix.sum())
