@@ -24,6 +24,9 @@ A unit off by a factor: G in m/s², a diameter in feet in an SI bundle, a weight
 check, and together the readings then give the cluster a drag coefficient no canopy has: W_T·G/q̄ − CDS_V over
 the constructed area π·D_o²/4 is 0.5-0.75 at its highest full open on the examples and synthetic tests.
 
+An accelerometer that disagrees with the airspeed's rate (:mod:`cpas_bayes.data.kinematics`, which argues its
+thresholds): a drifting zero, saturation or a lagging pitot line, which no fitted term changes.
+
 A fly-out angle from the horizontal: the riser's angle is measured from the vehicle's axis (a cluster's risers
 fly out 8-15°); its complement, written by mistake, is 75-82°, and F·cos θ then reads a quarter of the load.
 """
@@ -33,6 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from cpas_bayes.data.bundle_air import air_summary
+from cpas_bayes.data.kinematics import kinematic_warning
 
 CLIP_RUN = 3          # readings holding the record's largest value in a row: a noisy peak seldom repeats its top twice
 CLIP_FLOOR_G = 2.0    # only above this: a sensor at rest reads about 1 g, and a coarse one repeats it
@@ -51,6 +55,8 @@ AIR_DATA_RATIO = (1 / 1.25, 1.25)
 # 5-reading running median): a canopy's is 0.3-1.2 full open and up to ~3 at an over-inflation peak
 CD_RANGE = (0.1, 4.0)
 CD_AFTER_S = 0.5        # from the last stage start: the fill has begun
+# notes that explain an accelerometer the airspeed's rate contradicts (data.kinematics), which is then not said
+EXPLAIN_KINEMATICS = ("clipped_accelerometer", "air_data_units", "drag_coefficient")
 FLYOUT_MAX_DEG = 45.0   # a median fly-out angle beyond this: a riser that far off the axis carries no cluster
 
 
@@ -257,14 +263,19 @@ def wide_flyout_angles(test):
 def reading_notes(test):
     """[(code, column or None, warning)] of what the bundle's readings themselves show, in the order said: a
     clipped accelerometer, a dead load cell, a fly-out angle from the horizontal (each naming its column), a load
-    before the first stage, air data in another unit, a drag coefficient no canopy has. The codes are the fit
-    health's (:mod:`cpas_bayes.inference.fit_health`)."""
+    before the first stage, air data in another unit, a drag coefficient no canopy has, an accelerometer that
+    disagrees with the airspeed's rate (naming G). The codes are the fit health's
+    (:mod:`cpas_bayes.inference.fit_health`)."""
     out = [("clipped_accelerometer", column, text) for column, text in clipped_channels(test)]
     out += [("dead_load_cell", column, text) for column, text in dead_load_cells(test)]
     out += [("flyout_angle", column, text) for column, text in wide_flyout_angles(test)]
     said = (("load_before_first_stage", load_before_first_stage(test)), ("air_data_units", air_data_mismatch(test)),
             ("drag_coefficient", implausible_drag_coefficient(test)))
-    return out + [(code, None, text) for code, text in said if text]
+    out += [(code, None, text) for code, text in said if text]
+    if any(code in EXPLAIN_KINEMATICS for code, _, _ in out):
+        return out   # a unit off or a flat top breaks the balance too: said once, by its cause
+    kinematics = kinematic_warning(test)
+    return out + ([("accelerometer_kinematics", "G", kinematics)] if kinematics else [])
 
 
 def reading_warnings(test):

@@ -50,8 +50,9 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_P
                                                  restart_points, screen_candidate, verdict_names)
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, cannot_rival, check_term, choose_term, compare_table,
-                                                 fit_converged, paired_difference, passes, structured_phases,
-                                                 unexplained_share, versus_baseline, withdrawn_terms)
+                                                 fit_converged, kinematic_findings, paired_difference, passes,
+                                                 structured_phases, unexplained_share, versus_baseline,
+                                                 withdrawn_terms)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals
@@ -533,25 +534,26 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
 
     rng = np.random.default_rng([options.seed, 7])
     checks = run_checks(baseline.fit, rng=rng)
-    adequate, failures = adequacy(checks, options)
+    kinematic, kinematic_where = kinematic_findings(test)   # the accelerometer against the airspeed's rate
+    adequate, failures = adequacy(checks, options, kinematic)
     total, total_se = paired_difference(discrepancy, baseline)
     remaining, remaining_se = paired_difference(reference, final)
     share = unexplained_share(total, remaining) if named else 0.0
-    withdrawn, why = withdrawn_terms(named, rounds, share, passes(remaining, remaining_se, options), options)
-    if withdrawn:   # stand-ins: the verdict is as if nothing had been named
+    withdrawn, why = withdrawn_terms(named, rounds, share, passes(remaining, remaining_se, options), options, kinematic)
+    if withdrawn:   # the verdict is as if nothing had been named
         named, final, reference, named_fit = [], baseline, discrepancy, None
         remaining, remaining_se = total, total_se
     left = passes(remaining, remaining_se, options)
     reasons = [x for r in rounds for x in r["reasons"]] + ([why] if withdrawn else [])
     unexplained = None
-    is_unexplained = (left and (not named or share < options.min_share)) or (not named and not adequate)
+    is_unexplained = (left and (not named or share < options.min_share)) or (not named and not adequate) or kinematic
     where, shape = discrepancy_where(reference, final.fit)
     if is_unexplained:
         # where the discrepancy sits; failing that (a misfit too fast or too fine for a smooth term), the
         # channel × phase rows whose residuals the adequacy check found structured
         places = [{k: w[k] for k in ("channel", "phase", "t_start", "t_end")} for w in where]
         unexplained = {"elpd_gain": remaining, "elpd_gain_se": remaining_se, "share_explained": share,
-                       "where": places or structured_phases(checks)}
+                       "where": kinematic_where + places or structured_phases(checks)}
         if named:
             reasons.append(f"the named terms explain {100 * share:.0f} % of the discrepancy's gain; what is left "
                            f"gains {remaining:.1f} ± {remaining_se:.1f}: unexplained")

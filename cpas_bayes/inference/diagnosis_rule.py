@@ -106,6 +106,7 @@ import pandas as pd
 
 from cpas_bayes.inference.candidate_fits import (BASELINE, CandidateFit, DiagnoseOptions, psis_loo,
                                                  verdict_names)
+from cpas_bayes.data.kinematics import accelerometer_kinematics
 from cpas_bayes.inference.fit_health import ESS_MIN, RHAT_MAX
 from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
 
@@ -312,10 +313,24 @@ def chosen_gains(rounds):
     return {c.term: c.elpd_diff for r in rounds for c in r["checks"] if c.term == r.get("chosen")}
 
 
-def withdrawn_terms(named, rounds, share, left, options):
-    """The named terms the verdict withdraws as stand-ins, and the sentence that says why: those of
-    :func:`stand_ins_by_shape`, else those of :func:`slivers_beside_unexplained` (``left``: what the named terms
-    leave passes the naming thresholds). ``([], "")`` when the names stand."""
+def judged_against_accelerometer(named):
+    """The named terms whose evidence is the load cells read against the accelerometer (a friction factor's
+    drift, a lag behind its time base): with an accelerometer the airspeed contradicts, a drifting ratio
+    between the two is the accelerometer's as readily (:mod:`cpas_bayes.data.kinematics`: a 0.05 g zero
+    drift on the independent simulator's Main was named ``friction_drift`` and ``sensor_lag``)."""
+    return [t for t in named if make_extension(t).needs_load_cells]
+
+
+def withdrawn_terms(named, rounds, share, left, options, accelerometer_failures=()):
+    """The named terms the verdict withdraws, and the sentence that says why: every one when the accelerometer
+    fails its balance with the airspeed (``accelerometer_failures``, :func:`kinematic_findings`) and some are
+    judged against it (:func:`judged_against_accelerometer`); else the stand-ins of :func:`stand_ins_by_shape`,
+    else those of :func:`slivers_beside_unexplained` (``left``: what the named terms leave passes the naming
+    thresholds). ``([], "")`` when the names stand."""
+    if accelerometer_failures and (against := judged_against_accelerometer(named)):
+        return list(named), (f"{', '.join(named)} withdrawn: {', '.join(against)} "
+                             f"{'is' if len(against) == 1 else 'are'} read against the accelerometer, and "
+                             f"{accelerometer_failures[0]}")
     if withdrawn := stand_ins_by_shape(named, rounds, share, options):
         return withdrawn, (f"{', '.join(withdrawn)} withdrawn: named for taking the discrepancy's shape over, alone "
                            f"it explains {100 * share:.0f} % of the discrepancy's gain (a stand-in)")
@@ -447,9 +462,10 @@ def _takes_it_all(best: TermCheck, second: TermCheck):
 # adequacy and what is left unexplained
 
 
-def adequacy(checks, options: DiagnoseOptions):
-    """(adequate, failures): the baseline's own checks against the thresholds above."""
-    failures = []
+def adequacy(checks, options: DiagnoseOptions, readings=()):
+    """(adequate, failures): the baseline's own checks against the thresholds above, after ``readings``: the
+    failures the readings show alone (:func:`kinematic_findings`)."""
+    failures = list(readings)
     low, high = MULTIPLIER_RANGE
     for name, q in checks.residuals.noise.items():
         if not low <= q["mean"] <= high:
@@ -476,6 +492,20 @@ def adequacy(checks, options: DiagnoseOptions):
         for r in pit[pit["ks_p_value"] < limit].to_dict("records"):
             failures.append(f"LOO-PIT of {r['channel']} is not uniform (KS p = {r['ks_p_value']:.1e})")
     return not failures, failures
+
+
+def kinematic_findings(test):
+    """(failures, where) of :func:`cpas_bayes.data.kinematics.accelerometer_kinematics`: when the accelerometer
+    disagrees with the airspeed's rate, a sentence for the adequacy failures and the failing windows as
+    unexplained places ({channel, phase, t_start, t_end}); ``([], [])`` when it agrees or is not checked."""
+    check = accelerometer_kinematics(test)
+    if check is None or not check.fails:
+        return [], []
+    a, b, m, s = check.worst
+    failures = [f"the accelerometer disagrees with the airspeed's rate, which no term changes: {m:+.3f} g "
+                f"(1-sigma {s:.3f} g) over {a:.1f}–{b:.1f} s, χ² p = {check.p_value:.1e}"]
+    return failures, [{"channel": "accelerometer", "phase": "against the airspeed's rate", "t_start": t0,
+                       "t_end": t1} for t0, t1, _ in check.failing_windows()]
 
 
 def structured_phases(checks):

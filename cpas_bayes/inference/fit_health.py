@@ -45,7 +45,7 @@ has none. The checks and their thresholds:
     straddle the peak, so the measured peak reads low and the fit's C_k and
     n_p with it (a 20 Hz accelerometer on a 0.3 s fill gives 6 samples).
 ``clipped_accelerometer``, ``dead_load_cell``, ``flyout_angle``, ``load_before_first_stage``,
-``air_data_units``, ``drag_coefficient``
+``air_data_units``, ``drag_coefficient``, ``accelerometer_kinematics``
     What the readings themselves show (:mod:`cpas_bayes.data.bundle_notes`, which argues each threshold; also
     said by ``validate`` and ``reduce``), listed first: a unit off or a dead channel explains the rest.
 """
