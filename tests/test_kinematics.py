@@ -1,7 +1,7 @@
 """The accelerometer against the airspeed's rate (data.kinematics) and what the diagnosis does with it.
 
 Sound readings of two simulators pass; an accelerometer whose zero drifts, a lagging pitot line and a
-saturated accelerometer fail, in the windows where they act; a diagnosis withdraws the load-cell terms named
+saturated accelerometer fail, in the windows where they act; a diagnosis does not try the load-cell terms
 against a failing accelerometer and says `unexplained`.
 """
 
@@ -19,8 +19,9 @@ from cpas_bayes.data.bundle_notes import reading_notes
 from cpas_bayes.data.kinematics import FLOOR_G, accelerometer_kinematics, kinematic_warning
 from cpas_bayes.data.synth import synthesize
 from cpas_bayes.inference.candidate_fits import DiagnoseOptions
-from cpas_bayes.inference.diagnosis_rule import (adequacy, judged_against_accelerometer, kinematic_findings,
-                                                 withdrawn_terms)
+from cpas_bayes.inference.diagnosis_rule import adequacy, kinematic_findings, terms_to_try
+
+CANDIDATES = ("added_mass", "friction_drift", "sensor_lag", "canopy_breathing")
 
 EXAMPLES = Path(__file__).parent.parent / "cpas_bayes" / "data" / "examples"
 
@@ -84,22 +85,20 @@ def test_a_logger_bundle_is_not_checked():
     assert accelerometer_kinematics(test) is None and kinematic_warning(test) is None
 
 
-def test_the_diagnosis_withdraws_load_cell_terms_named_against_a_failing_accelerometer():
+def test_the_diagnosis_does_not_try_load_cell_terms_against_a_failing_accelerometer():
     test = _zero_drift(read_bundle(EXAMPLES / "main-clean"))
     failures, where = kinematic_findings(test)
     assert len(failures) == 1 and "airspeed's rate" in failures[0]
     assert where and all(w["channel"] == "accelerometer" and w["t_start"] > 8.0 for w in where)
-    options = DiagnoseOptions()
-    # what the diagnosis named on that test before the check: both withdrawn, the verdict as if nothing named
-    withdrawn, why = withdrawn_terms(["friction_drift", "sensor_lag"], [], 1.0, False, options, failures)
-    assert withdrawn == ["friction_drift", "sensor_lag"] and "read against the accelerometer" in why
-    # terms of the drag itself are not judged against the accelerometer: they stand
-    assert judged_against_accelerometer(["added_mass", "canopy_breathing"]) == []
-    assert withdrawn_terms(["added_mass"], [], 1.0, False, options, failures) == ([], "")
+    # before the check, that test was named friction_drift and sensor_lag: terms of the load cells read
+    # against the accelerometer; terms of the drag itself are still tried
+    terms, said = terms_to_try(CANDIDATES, test, failures)
+    assert terms == ["added_mass", "canopy_breathing"]
+    assert len(said) == 1 and "friction_drift, sensor_lag" in said[0] and "read against the accelerometer" in said[0]
     # readings that agree change nothing
     sound = read_bundle(EXAMPLES / "main-clean")
     assert kinematic_findings(sound) == ([], [])
-    assert withdrawn_terms(["friction_drift"], [], 1.0, False, options, ()) == ([], "")
+    assert terms_to_try(CANDIDATES, sound, ()) == (list(CANDIDATES), [])
 
 
 def test_a_failing_accelerometer_makes_the_baseline_inadequate():

@@ -25,9 +25,10 @@ friction drift does (on the independent simulator's Main with a 0.05 g zero drif
 Thresholds, on 4-s windows (short enough to say where, long enough that a fill's transient at a window's end
 moves its mean by little): the check fails when the windows' χ² (stated sigmas) has p < :data:`ALPHA` *and*
 some window's |m| exceeds :data:`FLOOR_G`. Tests whose accelerometer and air data are sound read |m| ≤ 0.006 g
-in every window: the independent simulator's two example bundles, and 48 synthetic Drogues and Mains (seeds
+in every window: the independent simulator's two example bundles; 64 synthetic Drogues and Mains (seeds
 10000-10003), clean or with an added mass (of either form), a breathing canopy, a friction drift, a load-cell
-lag, riser ringing or a tare shift. The floor, 0.015 g, is 1.5 % of a canopy's steady load and 2.5× that. The
+lag, riser ringing or a tare shift; and 32 more (seeds 30000-30001) with two catalogued effects at once or the
+other forms of a friction drift and a lag. The floor, 0.015 g, is 1.5 % of a canopy's steady load and 2.5× that. The
 synthetic pitot lags fail it 8 of 8 (|m| 0.03-0.14 g), the synthetic clippings 7 of 8 (0.021-0.16 g; the one
 that passes, p = 0.006).
 

@@ -51,13 +51,13 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, DISCREPANCY, SCREEN_P
 from cpas_bayes.inference.check_draws import check_tree, posterior_median, predict_draws
 from cpas_bayes.inference.diagnosis_rule import (adequacy, cannot_rival, check_term, choose_term, compare_table,
                                                  fit_converged, kinematic_findings, paired_difference, passes,
-                                                 structured_phases, unexplained_share, versus_baseline,
-                                                 withdrawn_terms)
+                                                 structured_phases, terms_to_try, unexplained_share,
+                                                 versus_baseline, withdrawn_terms)
 from cpas_bayes.inference.fit import Fit
 from cpas_bayes.inference.predictive_checks import physical_series, run_checks, smooth_for_peaks
 from cpas_bayes.inference.residuals import channel_phases, residuals
 from cpas_bayes.stats.discrepancy import channel_sigma, discrepancy_shape
-from cpas_bayes.stats.model_terms import PHYSICAL, applies
+from cpas_bayes.stats.model_terms import PHYSICAL
 
 BAND = 0.90                 # data coverage band of the gain table
 FORM_MARGIN = 4.0           # elpd: a model form wins clearly beyond 2 se and this (a likelihood ratio of e⁴)
@@ -503,12 +503,9 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
         baseline = baseline_from_fit(baseline_fit)
     baseline = polish_baseline_map(baseline, options)
     warnings = list(reduction.warnings)   # what the readings themselves show comes first (data.bundle_notes)
-    terms = [n for n in options.candidates if n in PHYSICAL and applies(n, test)]
-    skipped = [n for n in options.candidates if n in PHYSICAL and n not in terms]
-    if skipped:
-        why = ("they act on load cells, and the test has none" if test.measured_qbar else
-               "they act on load cells, which a logger bundle has none of")
-        warnings.append(f"not tried: {', '.join(skipped)} ({why})")
+    kinematic, kinematic_where = kinematic_findings(test)   # the accelerometer against the airspeed's rate
+    terms, not_tried = terms_to_try(options.candidates, test, kinematic)
+    warnings += not_tried
     generic = [n for n in options.candidates if n not in PHYSICAL and n != DISCREPANCY]
 
     # the discrepancy, the model forms and any generic alternatives asked for, side by side
@@ -534,13 +531,12 @@ def _diagnose(test, options, reduction, echo, baseline_fit, executor):
 
     rng = np.random.default_rng([options.seed, 7])
     checks = run_checks(baseline.fit, rng=rng)
-    kinematic, kinematic_where = kinematic_findings(test)   # the accelerometer against the airspeed's rate
     adequate, failures = adequacy(checks, options, kinematic)
     total, total_se = paired_difference(discrepancy, baseline)
     remaining, remaining_se = paired_difference(reference, final)
     share = unexplained_share(total, remaining) if named else 0.0
-    withdrawn, why = withdrawn_terms(named, rounds, share, passes(remaining, remaining_se, options), options, kinematic)
-    if withdrawn:   # the verdict is as if nothing had been named
+    withdrawn, why = withdrawn_terms(named, rounds, share, passes(remaining, remaining_se, options), options)
+    if withdrawn:   # stand-ins: the verdict is as if nothing had been named
         named, final, reference, named_fit = [], baseline, discrepancy, None
         remaining, remaining_se = total, total_se
     left = passes(remaining, remaining_se, options)

@@ -108,7 +108,7 @@ from cpas_bayes.inference.candidate_fits import (BASELINE, CandidateFit, Diagnos
                                                  verdict_names)
 from cpas_bayes.data.kinematics import accelerometer_kinematics
 from cpas_bayes.inference.fit_health import ESS_MIN, RHAT_MAX
-from cpas_bayes.stats.model_terms import PHYSICAL, make_extension
+from cpas_bayes.stats.model_terms import PHYSICAL, applies, make_extension
 
 MULTIPLIER_RANGE = (1 / 1.5, 1.5)
 FAMILY_ALPHA = 0.001        # Ljung–Box over the channel × phase table (Bonferroni); KS of LOO-PIT likewise
@@ -313,24 +313,10 @@ def chosen_gains(rounds):
     return {c.term: c.elpd_diff for r in rounds for c in r["checks"] if c.term == r.get("chosen")}
 
 
-def judged_against_accelerometer(named):
-    """The named terms whose evidence is the load cells read against the accelerometer (a friction factor's
-    drift, a lag behind its time base): with an accelerometer the airspeed contradicts, a drifting ratio
-    between the two is the accelerometer's as readily (:mod:`cpas_bayes.data.kinematics`: a 0.05 g zero
-    drift on the independent simulator's Main was named ``friction_drift`` and ``sensor_lag``)."""
-    return [t for t in named if make_extension(t).needs_load_cells]
-
-
-def withdrawn_terms(named, rounds, share, left, options, accelerometer_failures=()):
-    """The named terms the verdict withdraws, and the sentence that says why: every one when the accelerometer
-    fails its balance with the airspeed (``accelerometer_failures``, :func:`kinematic_findings`) and some are
-    judged against it (:func:`judged_against_accelerometer`); else the stand-ins of :func:`stand_ins_by_shape`,
-    else those of :func:`slivers_beside_unexplained` (``left``: what the named terms leave passes the naming
-    thresholds). ``([], "")`` when the names stand."""
-    if accelerometer_failures and (against := judged_against_accelerometer(named)):
-        return list(named), (f"{', '.join(named)} withdrawn: {', '.join(against)} "
-                             f"{'is' if len(against) == 1 else 'are'} read against the accelerometer, and "
-                             f"{accelerometer_failures[0]}")
+def withdrawn_terms(named, rounds, share, left, options):
+    """The named terms the verdict withdraws as stand-ins, and the sentence that says why: those of
+    :func:`stand_ins_by_shape`, else those of :func:`slivers_beside_unexplained` (``left``: what the named terms
+    leave passes the naming thresholds). ``([], "")`` when the names stand."""
     if withdrawn := stand_ins_by_shape(named, rounds, share, options):
         return withdrawn, (f"{', '.join(withdrawn)} withdrawn: named for taking the discrepancy's shape over, alone "
                            f"it explains {100 * share:.0f} % of the discrepancy's gain (a stand-in)")
@@ -492,6 +478,27 @@ def adequacy(checks, options: DiagnoseOptions, readings=()):
         for r in pit[pit["ks_p_value"] < limit].to_dict("records"):
             failures.append(f"LOO-PIT of {r['channel']} is not uniform (KS p = {r['ks_p_value']:.1e})")
     return not failures, failures
+
+
+def terms_to_try(candidates, test, accelerometer_failures=()):
+    """(terms, warnings): the physical ``candidates`` that ``test`` lets the diagnosis try, and a sentence for
+    each group not tried. Load-cell terms need load cells. With an accelerometer the airspeed's rate
+    contradicts (``accelerometer_failures``, :func:`kinematic_findings`), terms whose evidence is the load
+    cells read against the accelerometer (a friction factor's drift, a lag behind its time base) are not tried
+    either: a drifting ratio of the two is then the accelerometer's as readily (a 0.05 g zero drift on the
+    independent simulator's Main was named ``friction_drift`` and ``sensor_lag``)."""
+    physical = [n for n in candidates if n in PHYSICAL]
+    terms = [n for n in physical if applies(n, test)]
+    out = []
+    if skipped := [n for n in physical if n not in terms]:
+        why = ("they act on load cells, and the test has none" if test.measured_qbar else
+               "they act on load cells, which a logger bundle has none of")
+        out.append(f"not tried: {', '.join(skipped)} ({why})")
+    if accelerometer_failures and (against := [n for n in terms if make_extension(n).needs_load_cells]):
+        terms = [n for n in terms if n not in against]
+        out.append(f"not tried: {', '.join(against)} (read against the accelerometer, and "
+                   f"{accelerometer_failures[0]})")
+    return terms, out
 
 
 def kinematic_findings(test):
