@@ -65,6 +65,11 @@ class KinematicCheck:
         return self.windows[np.argmax(np.abs(self.windows[:, 2]))]
 
     @property
+    def p_text(self):
+        """The χ² p-value as said: below double precision's smallest, a bound."""
+        return f"p = {self.p_value:.1e}" if self.p_value > 0 else "p < 1e-300"
+
+    @property
     def fails(self):
         return bool(self.p_value < ALPHA and abs(self.worst[2]) > FLOOR_G)
 
@@ -129,7 +134,7 @@ def kinematic_warning(test, check=None):
     a, b, m, s = check.worst
     return (f"data.csv G disagrees with the airspeed's rate: over {a:.1f}-{b:.1f} s the accelerometer reads "
             f"{m:+.3f} g beyond what the airspeed's change and gamma allow (dV/dt = −g₀·(G + sin γ); 1-sigma "
-            f"{s:.3f} g from the stated sigmas, χ² p = {check.p_value:.1e} over {len(check.windows)} windows of "
+            f"{s:.3f} g from the stated sigmas, χ² {check.p_text} over {len(check.windows)} windows of "
             f"{b - a:g} s). No fitted term changes this balance: check the accelerometer (a drifting zero, a scale "
             "error, saturation) and the pitot-static line (a lag), and that gamma is the flight-path angle in "
             "degrees, up positive")

@@ -510,7 +510,7 @@ def kinematic_findings(test):
         return [], []
     a, b, m, s = check.worst
     failures = [f"the accelerometer disagrees with the airspeed's rate, which no term changes: {m:+.3f} g "
-                f"(1-sigma {s:.3f} g) over {a:.1f}–{b:.1f} s, χ² p = {check.p_value:.1e}"]
+                f"(1-sigma {s:.3f} g) over {a:.1f}–{b:.1f} s, χ² {check.p_text}"]
     return failures, [{"channel": "accelerometer", "phase": "against the airspeed's rate", "t_start": t0,
                        "t_end": t1} for t0, t1, _ in check.failing_windows()]
 
