@@ -136,5 +136,5 @@ def kinematic_warning(test, check=None):
             f"{m:+.3f} g beyond what the airspeed's change and gamma allow (dV/dt = −g₀·(G + sin γ); 1-sigma "
             f"{s:.3f} g from the stated sigmas, χ² {check.p_text} over {len(check.windows)} windows of "
             f"{b - a:g} s). No fitted term changes this balance: check the accelerometer (a drifting zero, a scale "
-            "error, saturation) and the pitot-static line (a lag), and that gamma is the flight-path angle in "
-            "degrees, up positive")
+            "error, saturation), the pitot-static line (a lag), the airspeed (an equivalent airspeed, or one from a "
+            "density off, scales its every change), and that gamma is the flight-path angle in degrees, up positive")
