@@ -80,7 +80,12 @@ Adequacy of the baseline (:func:`adequacy`) — what ``none`` requires
   in ≈ 2 % of clean Mains (60 statistics) and 0.4 % of clean Drogues (30);
 * LOO-PIT: each channel's KS p-value above 0.001/channels;
 * the generic discrepancy does not pass the naming thresholds against the
-  baseline (gain > 10 and > 2 se).
+  baseline (gain > 10 and > 2 se);
+* an accelerometer that agrees with the airspeed's rate
+  (:mod:`cpas_bayes.data.kinematics`, :func:`kinematic_findings`): a check of
+  the readings that no term can pass; when it fails, ``unexplained`` is a cause
+  at its windows, and the terms read against the accelerometer are not tried
+  (:func:`terms_to_try`).
 
 Unexplained (:func:`unexplained_share`)
 ----------------------------------------
@@ -104,9 +109,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from cpas_bayes.data.kinematics import accelerometer_kinematics
 from cpas_bayes.inference.candidate_fits import (BASELINE, CandidateFit, DiagnoseOptions, psis_loo,
                                                  verdict_names)
-from cpas_bayes.data.kinematics import accelerometer_kinematics
 from cpas_bayes.inference.fit_health import ESS_MIN, RHAT_MAX
 from cpas_bayes.stats.model_terms import PHYSICAL, applies, make_extension
 
