@@ -513,7 +513,7 @@ def kinematic_findings(test):
     check = accelerometer_kinematics(test)
     if check is None or not check.fails:
         return [], []
-    a, b, m, s = check.worst
+    a, b, m, s, _ = check.worst
     failures = [f"the accelerometer disagrees with the airspeed's rate, which no term changes: {m:+.3f} g "
                 f"(1-sigma {s:.3f} g) over {a:.1f}–{b:.1f} s, χ² {check.p_text}"]
     return failures, [{"channel": "accelerometer", "phase": "against the airspeed's rate", "t_start": t0,
