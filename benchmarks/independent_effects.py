@@ -51,6 +51,7 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
+from scipy.signal import lfilter
 
 HERE = Path(__file__).resolve().parent
 EXAMPLES = HERE.parent / "cpas_bayes" / "data" / "examples"
@@ -71,27 +72,20 @@ RING = (0.15, 0.4, 6.0)   # amplitude (of the reading 0.3 s after the start), de
 G_DRIFT = 0.05         # g at the record's end
 
 
+def _one_pole(x, a, settled):
+    """y[i] = a·y[i−1] + (1 − a)·x[i]: settled at x[0] before the record, or at rest (0)."""
+    return lfilter([1.0 - a], [1.0, -a], x, zi=[a * x[0] if settled else 0.0])[0]
+
+
 def two_pole(time, x, mean_delay):
-    """x through two equal first-order stages (time constant mean_delay/2 each), exact for piecewise-linear
-    input on a uniform grid; starts settled at x[0]. Returns (y, Σh²): Σh² the white-noise variance ratio."""
-    dt = float(np.median(np.diff(time)))
-    a = np.exp(-dt / (0.5 * mean_delay))
-    y = np.asarray(x, float).copy()
-    for _ in range(2):
-        out = np.empty_like(y)
-        out[0] = y[0]
-        for i in range(1, y.size):
-            out[i] = a * out[i - 1] + (1.0 - a) * y[i]
-        y = out
+    """x through two equal first-order stages (time constant mean_delay/2 each, one recursion per sample on the
+    record's median step), settled at x[0]. Returns (y, Σh²): Σh² the white-noise variance ratio, from the
+    two stages' impulse response."""
+    a = np.exp(-float(np.median(np.diff(time))) / (0.5 * mean_delay))
+    y = _one_pole(_one_pole(np.asarray(x, float), a, True), a, True)
     impulse = np.zeros(2000)
     impulse[0] = 1.0
-    h = impulse
-    for _ in range(2):
-        out = np.empty_like(h)
-        out[0] = (1.0 - a) * h[0]
-        for i in range(1, h.size):
-            out[i] = a * out[i - 1] + (1.0 - a) * h[i]
-        h = out
+    h = _one_pole(_one_pole(impulse, a, False), a, False)
     return y, float(np.sum(h ** 2))
 
 
