@@ -264,7 +264,8 @@ def test_check_report_is_json(drogue_fit, drogue_checks):
 
 @pytest.mark.slow
 def test_write_fit_figures_writes_valid_pngs(drogue_fit, drogue_checks, tmp_path):
-    from cpas_bayes.outputs.fit_figures import write_fit_figures
+    from cpas_bayes.core.executor import Executor
+    from cpas_bayes.outputs.fit_figures import start_corner_figures, write_fit_figures
 
     paths = write_fit_figures(drogue_fit, tmp_path / "figures", checks=drogue_checks, n_draws=150)
     names = {p.name for p in paths}
@@ -276,6 +277,12 @@ def test_write_fit_figures_writes_valid_pngs(drogue_fit, drogue_checks, tmp_path
         assert data[:8] == PNG_MAGIC, p.name
         assert len(data) > 20_000, p.name
     assert not list((tmp_path / "figures").glob(".*tmp"))    # atomic writes left no temporaries
+    # the fit command starts the corners from the sampled draws, before the DataTree: the same files
+    started = start_corner_figures(drogue_fit.model, drogue_fit.sampling, tmp_path / "early", Executor())
+    early = write_fit_figures(drogue_fit, tmp_path / "early", n_draws=150, parts=("draws",), started=started)
+    assert {p.name for p in early} == expected - {"ppc.png", "loo_pit.png", "residuals.png"}
+    for p in early:
+        assert p.read_bytes() == (tmp_path / "figures" / p.name).read_bytes(), p.name
 
 
 def test_fit_loo_and_loo_pit_equal_arviz_own(drogue_fit):

@@ -298,7 +298,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
     from cpas_bayes.inference.fit import SamplerOptions, fit_model, prepare_model
     from cpas_bayes.inference.fit_folder import fill_time_table, pairing_note, record_checks, write_fit_files
     from cpas_bayes.inference.predictive_checks import run_checks
-    from cpas_bayes.outputs.fit_figures import write_fit_figures
+    from cpas_bayes.outputs.fit_figures import start_corner_figures, write_fit_figures
     from cpas_bayes.stats.model_terms import make_extension
 
     if problem := stop_problem(stop, ess_target, ensembles):
@@ -322,7 +322,9 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
                   "rerun the same command to resume from it")
     out = claim_folder(out)
     with _executor(min(workers, ensembles), scheduler) as executor:
-        fit = fit_model(model, options, checkpoint_dir=out / "checkpoint", echo=click.echo, executor=executor)
+        corners, warnings = [], []   # the corners start on the workers while the DataTree is assembled
+        fit = fit_model(model, options, checkpoint_dir=out / "checkpoint", echo=click.echo, executor=executor,
+                        on_sampled=lambda s: corners.append(start_corner_figures(model, s, out, executor)))
 
         def checks():   # run while the workers draw the figures that need none, as is the files' writing
             write_fit_files(fit, out)
@@ -330,8 +332,7 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
             warnings.extend(record_checks(fit, found, out))
             return found
 
-        warnings = []
-        figures = write_fit_figures(fit, out, checks=checks, executor=executor)
+        figures = write_fit_figures(fit, out, checks=checks, executor=executor, started=corners[0])
     d = fit.summary["diagnostics"]
     click.echo(f"{'converged' if d['converged'] else 'NOT converged'}: R-hat max {d['rhat_max']:.4f}, "
                f"ESS bulk min {d['ess_bulk_min']:.0f}, tail min {d['ess_tail_min']:.0f}, tau max "

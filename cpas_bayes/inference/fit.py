@@ -486,11 +486,12 @@ def prepare_model(test, reduction, priors=None, decay="linear", extensions=(), n
 
 
 def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=None, echo=None,
-              guesses=None, checkpoint_dir=None, executor=None) -> Fit:
+              guesses=None, checkpoint_dir=None, executor=None, on_sampled=None) -> Fit:
     """Sample ``model``'s posterior; write ``posterior.nc`` and ``summary.json`` into ``out`` if given.
 
     Checkpoints go to ``checkpoint_dir`` (default ``out/checkpoint``); none without either.
-    ``executor`` runs the ensembles (see :func:`sample_posterior`).
+    ``executor`` runs the ensembles (see :func:`sample_posterior`). ``on_sampled(sampling)`` is called with
+    the draws before the DataTree is assembled (work for idle workers: the fit command's corner figures).
     """
     from cpas_bayes.inference.fit_folder import build_datatree, build_summary, convergence, write_fit_files
 
@@ -501,6 +502,8 @@ def fit_model(model: TestModel, options: SamplerOptions = SamplerOptions(), out=
         checkpoint_dir = out / "checkpoint"
     sampling = sample_posterior(model, options, checkpoint_dir=checkpoint_dir, echo=echo, guesses=guesses,
                                 executor=executor)
+    if on_sampled:
+        on_sampled(sampling)
     tree = build_datatree(model, sampling, np.random.default_rng([options.seed, 99]))
     diagnostics = convergence(tree, sampling)
     fit = Fit(model, sampling, tree, summary=build_summary(model, tree, diagnostics, options))

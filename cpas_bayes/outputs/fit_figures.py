@@ -8,6 +8,8 @@ does not spend 0.45-0.6 s of CPU on matplotlib's import beside workers that alre
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from cpas_bayes.core.inputs import inside
@@ -30,14 +32,13 @@ def band_draws(fit, n_draws, rng):
     return predict_draws(model, draws[pick])
 
 
-def corner_groups(fit):
-    """[(chute id, stage k (1-based), [parameter names])] of each parachute stage.
+def corner_groups(model):
+    """[(chute id, stage k (1-based), [parameter names])] of each parachute stage of ``model``.
 
     A composite cluster's parachutes share their parameters: their group's stage once,
     under the first parachute's id.
     """
     out, seen = [], set()
-    model = fit.model
     for i, p in enumerate(model.parachutes):
         for k in range(1, len(p.stages) + 1):
             names = [n for n in (model.parameter_name(i, f"s{k}.{f}") for f in CORNER_FIELDS) if n is not None]
@@ -63,7 +64,29 @@ def _figure_task(job):
     return draw_figure(job)
 
 
-def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None, parts=FIGURE_PARTS):
+@dataclass
+class StartedFigures:
+    """The corners of a fit drawing on the workers before its DataTree exists (:func:`start_corner_figures`):
+    the figures' random generator, the loads figure's stream and the corners' tasks."""
+
+    rng: np.random.Generator
+    loads_stream: np.random.Generator
+    tasks: list
+
+
+def start_corner_figures(model, sampling, out, executor, rng=0):
+    """Submit the corner figures from the sampled draws (a
+    :class:`cpas_bayes.inference.fit.SamplingResult`), the same files as :func:`write_fit_figures` draws:
+    the workers draw them while this process assembles the DataTree, which they would otherwise wait for
+    idle (1-1.5 s of a two-Drogue fit command). Pass the result as ``write_fit_figures(started=...)``."""
+    chains, _, _ = sampling.stacked()
+    rng = np.random.default_rng(rng)
+    loads_stream, jobs = _corner_jobs(model, lambda name: chains[:, :, model.index[name]], claim_folder(out), rng)
+    return StartedFigures(rng, loads_stream, [executor.submit(_figure_task, job) for job in jobs])
+
+
+def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None, parts=FIGURE_PARTS,
+                      started=None):
     """Write every figure of a fit into folder ``out``; return their paths.
 
     ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given; it may
@@ -73,7 +96,8 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
     1 s of matplotlib apiece); the figures do not depend on it: each has its own random stream.
     ``parts`` (of :data:`FIGURE_PARTS`) draws some of them: ``"draws"`` (bands, trace, corners, loads) or
     ``"checks"`` (PPC, LOO-PIT, residuals), each the same file as a call that draws both with the same
-    ``checks`` argument (a campaign draws the first later, as a task of its own).
+    ``checks`` argument (a campaign draws the first later, as a task of its own). ``started``: the corners
+    :func:`start_corner_figures` submitted already (then ``rng`` is the one given there).
     """
     from cpas_bayes.core.executor import Executor
 
@@ -82,38 +106,51 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
         raise ValueError(f"unknown figure parts {unknown}; use some of {FIGURE_PARTS}")
     executor = executor or Executor()
     out = claim_folder(out)
-    rng = np.random.default_rng(rng)
+    rng = started.rng if started else np.random.default_rng(rng)
     if checks is None and "checks" in parts:
         checks = run_checks(fit, rng=rng)
-    jobs = _draw_figure_jobs(fit, out, n_draws, rng) if "draws" in parts else []
-    started = [executor.submit(_figure_task, job) for job in jobs]
+    started_tasks = list(started.tasks) if started else []
+    jobs = _draw_figure_jobs(fit, out, n_draws, rng, started) if "draws" in parts else []
+    started_tasks += [executor.submit(_figure_task, job) for job in jobs]
     if "checks" in parts:
         checks = checks() if callable(checks) else checks
-        started += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
-    return [task.result() for task in started]
+        started_tasks += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
+    return [task.result() for task in started_tasks]
 
 
-def _draw_figure_jobs(fit, out, n_draws, rng):
-    """The figures of the posterior's draws as tasks: bands, trace, corners (most parameters first), loads."""
-    pred = band_draws(fit, n_draws, rng)
-    groups = corner_groups(fit)
+def _corner_jobs(model, values_of, out, rng):
+    """(the loads figure's random stream, the corner figures as tasks, most parameters first);
+    ``values_of(name)``: a parameter's posterior draws."""
+    groups = corner_groups(model)
+    # spawned streams do not depend on what the generator drew before: the same whether the corners start
+    # before the bands' draws are picked or after
     streams = iter(rng.spawn(len(groups) + 1))
-    # the slowest first, so that two workers finish together (bands and trace ~0.7 s each, a corner of six
-    # parameters 0.6 s, of five 0.4 s, loads 0.35 s)
-    jobs = [("bands", out / "bands.png", (fit, pred), {}),
-            ("trace", out / "trace.png", (fit, worst_rhat_parameters(fit)), {})]
-    loads = ("loads", out / "loads.png", (fit, pred, next(streams)), {})
-    post = fit.tree["posterior"]
+    loads_stream, jobs = next(streams), []
     for pid, k, names in groups:
-        values = np.column_stack([np.asarray(post[n].values, float).ravel() for n in names])
+        values = np.column_stack([np.asarray(values_of(n), float).ravel() for n in names])
         short = [n.rsplit(".", 1)[-1] for n in names]
         labels = [f"{s} [{CORNER_UNITS.get(s, '-')}]" for s in short]
-        title = (f"{fit.model.test.name}: {pid} stage {k} posterior — narrow, single-peaked clouds mean the "
+        title = (f"{model.test.name}: {pid} stage {k} posterior — narrow, single-peaked clouds mean the "
                  "data pin the parameters; tilted ones show trade-offs")
         jobs.append(("corner", inside(out, f"corner_{pid}_s{k}.png"), (values, short, labels, title),
                      {"rng": next(streams)}))
-    jobs[2:] = sorted(jobs[2:], key=lambda job: -len(job[2][1]))   # corners with the most parameters first
-    return jobs + [loads]
+    return loads_stream, sorted(jobs, key=lambda job: -len(job[2][1]))
+
+
+def _draw_figure_jobs(fit, out, n_draws, rng, started=None):
+    """The figures of the posterior's draws as tasks: bands, trace, corners (most parameters first, unless
+    ``started``), loads."""
+    pred = band_draws(fit, n_draws, rng)
+    if started:
+        loads_stream, corners = started.loads_stream, []
+    else:
+        post = fit.tree["posterior"]
+        loads_stream, corners = _corner_jobs(fit.model, lambda name: post[name].values, out, rng)
+    # the slowest first, so that two workers finish together (bands and trace ~0.7 s each, a corner of six
+    # parameters 0.6 s, of five 0.4 s, loads 0.35 s)
+    return ([("bands", out / "bands.png", (fit, pred), {}),
+             ("trace", out / "trace.png", (fit, worst_rhat_parameters(fit)), {})]
+            + corners + [("loads", out / "loads.png", (fit, pred, loads_stream), {})])
 
 
 def _check_figure_jobs(checks, out):
