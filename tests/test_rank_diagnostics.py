@@ -77,3 +77,32 @@ def test_unequal_superchains_are_refused():
     x = np.random.default_rng(0).standard_normal((2, 3, 20))
     with pytest.raises(ValueError, match="same number of chains"):
         rd.rhat_nested(x, np.array([0, 0, 1]))
+
+
+@pytest.mark.parametrize("ensembles", [1, 3])
+def test_fit_convergence_reports_arviz_numbers(ensembles):
+    """A fit's summary diagnostics (fit_folder.convergence) equal arviz_stats' own on the fit's DataTree:
+    nested R-hat over ensembles (plain rank R-hat for one), bulk ESS and the 5 %/95 % tail ESS."""
+    import types
+
+    import arviz_base as azb
+    import arviz_stats as azs
+
+    from cpas_bayes.inference.fit_folder import convergence
+
+    rng = np.random.default_rng(11)
+    walkers, draws, names = 6, 60, ["a", "b.s1.n_p", "c"]
+    x = _ar1(rng, len(names), ensembles * walkers, draws, 0.7)
+    x[2] = np.round(x[2])                                   # ties, as rejected moves repeat a value
+    ensemble = np.repeat(np.arange(ensembles), walkers)
+    tree = azb.from_dict({"posterior": {n: x[i] for i, n in enumerate(names)}})
+    tree["posterior"] = tree["posterior"].to_dataset().assign_coords(ensemble=("chain", ensemble))
+    runs = [types.SimpleNamespace(tau=np.ones(3), acceptance=0.3, steps=draws, converged=True)] * ensembles
+    got = convergence(tree, types.SimpleNamespace(names=names, runs=runs, extras={}))["per_parameter"]
+    rhat = (azs.rhat_nested(tree, var_names=names, superchain_ids=ensemble) if ensembles > 1
+            else azs.rhat(tree, var_names=names))
+    bulk = azs.ess(tree, var_names=names, method="bulk")
+    tail = azs.ess(tree, var_names=names, method="tail", prob=(0.05, 0.95))
+    for n in names:
+        np.testing.assert_allclose([got[n]["rhat"], got[n]["ess_bulk"], got[n]["ess_tail"]],
+                                   [float(rhat[n]), float(bulk[n]), float(tail[n])], rtol=1e-9, err_msg=n)

@@ -38,6 +38,7 @@ from cpas_bayes.core.summaries import quantile_summary
 from cpas_bayes.core.files import atomic_path, jsonable, write_json
 from cpas_bayes.core.inputs import broken_link, name_problem, read_json
 from cpas_bayes.physics.inflation import stage_key
+from cpas_bayes.inference.rank_diagnostics import chain_diagnostics
 from cpas_bayes.inference.stopping import TAIL_QUANTILES
 from cpas_bayes.stats.priors import prior_from_table
 
@@ -360,26 +361,19 @@ def _predict_in_batches(model, theta, batch=256):
 
 
 def convergence(tree, sampling, rhat_max=1.01, ess_min=400):
-    """R-hat across ensembles (nested R-hat: walkers grouped by ensemble), ESS, τ, acceptance."""
-    import arviz_stats as azs
+    """R-hat across ensembles (nested R-hat: walkers grouped by ensemble), ESS, τ, acceptance.
 
+    ArviZ's numbers (rank-normalised bulk and tail ESS, nested R-hat; one ensemble: the plain rank R-hat,
+    optimistic since walkers share the ensemble's moves), computed by :mod:`cpas_bayes.inference.rank_diagnostics`
+    for all parameters at once: equal to ``arviz_stats`` to 1e-9 (tested), in 0.05 s instead of its 0.3-0.5 s
+    loop over parameters, which a fit command's main process spent while the workers waited for the figures.
+    """
     post = tree["posterior"]
     names = list(sampling.names)
-    superchains = np.asarray(post["ensemble"].values)
-    if len(set(superchains.tolist())) > 1:
-        rhat = azs.rhat_nested(tree, var_names=names, superchain_ids=superchains)
-    else:
-        # One ensemble: no independent chains to compare; walker-chain R-hat is the
-        # best available (optimistic, since walkers share the ensemble's moves).
-        rhat = azs.rhat(tree, var_names=names)
-    ess_bulk = azs.ess(tree, var_names=names, method="bulk")
+    draws = np.stack([np.asarray(post[n].values, float) for n in names])       # (D, chain, draw)
     # the 90 % interval's endpoints, as the ESS stopping rule (ArviZ 1.x's default reads 0.89 as quantiles)
-    ess_tail = azs.ess(tree, var_names=names, method="tail", prob=TAIL_QUANTILES)
-
-    def values(ds):
-        return {n: float(np.asarray(ds[n].values)) for n in names}
-
-    rhat_v, bulk_v, tail_v = values(rhat), values(ess_bulk), values(ess_tail)
+    bulk, tail, rhat = chain_diagnostics(draws, np.asarray(post["ensemble"].values), TAIL_QUANTILES)
+    rhat_v, bulk_v, tail_v = (dict(zip(names, map(float, v))) for v in (rhat, bulk, tail))
     tau_max = float(max(np.max(r.tau) for r in sampling.runs))
     out = {
         "rhat_max": max(rhat_v.values()),
