@@ -326,13 +326,13 @@ def fit_command(bundle, out, seed, priors, decay, below_previous, workers, sched
         fit = fit_model(model, options, checkpoint_dir=out / "checkpoint", echo=click.echo, executor=executor,
                         on_sampled=lambda s: corners.append(start_corner_figures(model, s, out, executor)))
 
-        def checks():   # run while the workers draw the figures that need none, as is the files' writing
-            write_fit_files(fit, out)
+        def checks():   # run while the workers draw the figures that need none; the files while they draw the rest
             found = run_checks(fit, rng=0)
-            warnings.extend(record_checks(fit, found, out))
+            warnings.extend(record_checks(fit, found))
             return found
 
-        figures = write_fit_figures(fit, out, checks=checks, executor=executor, started=corners[0])
+        figures = write_fit_figures(fit, out, checks=checks, executor=executor, started=corners[0],
+                                    meanwhile=lambda: write_fit_files(fit, out))
     d = fit.summary["diagnostics"]
     click.echo(f"{'converged' if d['converged'] else 'NOT converged'}: R-hat max {d['rhat_max']:.4f}, "
                f"ESS bulk min {d['ess_bulk_min']:.0f}, tail min {d['ess_tail_min']:.0f}, tau max "

@@ -86,7 +86,7 @@ def start_corner_figures(model, sampling, out, executor, rng=0):
 
 
 def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor=None, parts=FIGURE_PARTS,
-                      started=None):
+                      started=None, meanwhile=None):
     """Write every figure of a fit into folder ``out``; return their paths.
 
     ``checks`` (:class:`cpas_bayes.inference.predictive_checks.FitChecks`) is computed if not given; it may
@@ -97,7 +97,8 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
     ``parts`` (of :data:`FIGURE_PARTS`) draws some of them: ``"draws"`` (bands, trace, corners, loads) or
     ``"checks"`` (PPC, LOO-PIT, residuals), each the same file as a call that draws both with the same
     ``checks`` argument (a campaign draws the first later, as a task of its own). ``started``: the corners
-    :func:`start_corner_figures` submitted already (then ``rng`` is the one given there).
+    :func:`start_corner_figures` submitted already (then ``rng`` is the one given there). ``meanwhile``: a
+    function of no arguments called once every figure is submitted, while the workers draw them.
     """
     from cpas_bayes.core.executor import Executor
 
@@ -115,6 +116,8 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
     if "checks" in parts:
         checks = checks() if callable(checks) else checks
         started_tasks += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
+    if meanwhile:
+        meanwhile()
     return [task.result() for task in started_tasks]
 
 
