@@ -20,7 +20,7 @@ Measured (not timed tests):
 * fit_command_drogue / fit_command_main: wall time of the whole command a user
   types, ``cpas-bayes fit BUNDLE --out DIR`` (a fresh process: imports, MAP,
   sampling under the default ESS rule, DataTree, checks and every figure); the
-  median of three runs.
+  median of five runs.
 * step_cost: one ensemble of the two-Drogue fit in this process, 2,000 steps
   from the MAP's ball: time per step, of it the log posterior's, and the rest
   (the sampler's own bookkeeping), with emcee's DEMove and with the package's
@@ -107,7 +107,7 @@ def bench_fit(path):
             "posterior_over_single_nelder_mead": wall / nm["single_wall_s"]}
 
 
-COMMAND_RUNS = 3   # the whole command is timed this many times and the median reported: one run varies by ±15 %
+COMMAND_RUNS = 5   # the whole command is timed this many times and the median reported: one run varies by ±15 %
 
 
 def bench_fit_command(path, runs=COMMAND_RUNS):
