@@ -105,6 +105,12 @@ def init_worker(reports, owner_pid=None):
     _set_parent_death_signal(signal.SIGTERM)  # the fork server (or, with spawn, the owner) ending
     if owner_pid is not None:
         _watch_process(owner_pid)  # the owner ending (the fork server outlives it while workers run)
+    # A worker starts no processes. Under a fork-like default numba guards its thread pool's start with a named
+    # semaphore, which a worker ended by SIGTERM (Ctrl-C in the parent) cannot unlink: the resource tracker
+    # then reported "2 leaked semaphore objects" after every interrupted fit.
+    import multiprocessing
+
+    multiprocessing.set_start_method("spawn", force=True)
     limit_blas_threads()
 
 
