@@ -110,15 +110,15 @@ def write_fit_figures(fit, out, checks=None, n_draws=BAND_DRAWS, rng=0, executor
     rng = started.rng if started else np.random.default_rng(rng)
     if checks is None and "checks" in parts:
         checks = run_checks(fit, rng=rng)
-    started_tasks = list(started.tasks) if started else []
+    tasks = list(started.tasks) if started else []
     jobs = _draw_figure_jobs(fit, out, n_draws, rng, started) if "draws" in parts else []
-    started_tasks += [executor.submit(_figure_task, job) for job in jobs]
+    tasks += [executor.submit(_figure_task, job) for job in jobs]
     if "checks" in parts:
         checks = checks() if callable(checks) else checks
-        started_tasks += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
+        tasks += [executor.submit(_figure_task, job) for job in _check_figure_jobs(checks, out)]
     if meanwhile:
         meanwhile()
-    return [task.result() for task in started_tasks]
+    return [task.result() for task in tasks]
 
 
 def _corner_jobs(model, values_of, out, rng):
@@ -141,8 +141,8 @@ def _corner_jobs(model, values_of, out, rng):
 
 
 def _draw_figure_jobs(fit, out, n_draws, rng, started=None):
-    """The figures of the posterior's draws as tasks: bands, trace, corners (most parameters first, unless
-    ``started``), loads."""
+    """The figures of the posterior's draws as tasks: bands, trace, corners (most parameters first; none when
+    ``started`` has them), loads."""
     pred = band_draws(fit, n_draws, rng)
     if started:
         loads_stream, corners = started.loads_stream, []
