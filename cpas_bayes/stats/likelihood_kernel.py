@@ -123,3 +123,38 @@ def whitened_residuals(acc_obs, acc_pred, noise_acc, lc_obs, lc_pred, noise_lc, 
             for n in range(N):
                 z[b, k, n] -= c[n] * dot[n] * v[k, n]
     return z
+
+
+@numba.njit(cache=True)
+def interp_rows(x, xp, fps, out):
+    """np.interp of every row of ``fps`` (S, M), sampled at ``xp`` (M,), at the points ``x`` (R, N) into ``out``
+    (S, R, N): one walk along ``xp`` per row of ``x`` for all S series (each row of ``x`` increasing, as a
+    shifted time base is), where S calls of np.interp would each search ``xp`` for every point."""
+    R, N = x.shape
+    M = xp.shape[0]
+    S = fps.shape[0]
+    for r in range(R):
+        j = 0
+        for n in range(N):
+            v = x[r, n]
+            if v <= xp[0]:
+                for s in range(S):
+                    out[s, r, n] = fps[s, 0]
+                continue
+            if v >= xp[M - 1]:
+                for s in range(S):
+                    out[s, r, n] = fps[s, M - 1]
+                continue
+            if xp[j] > v:            # not increasing after all: search afresh
+                j = 0
+            while xp[j + 1] <= v:
+                j += 1
+            if xp[j] == v:
+                for s in range(S):
+                    out[s, r, n] = fps[s, j]
+                continue
+            for s in range(S):
+                # np.interp's formula, so that the values are the same
+                slope = (fps[s, j + 1] - fps[s, j]) / (xp[j + 1] - xp[j])
+                out[s, r, n] = slope * (v - xp[j]) + fps[s, j]
+    return out

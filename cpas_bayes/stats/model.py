@@ -71,6 +71,7 @@ from cpas_bayes.physics.inflation import (below_previous_code, cluster_drag_area
 from cpas_bayes.stats.cluster_form import chute_prefixes, stage_exchanges, start_prior
 from cpas_bayes.stats.likelihood_kernel import baseline_quadratic_form
 from cpas_bayes.stats.likelihood_kernel import whitened_residuals as fused_whitened_residuals
+from cpas_bayes.stats.load_cells import load_cell_drag_areas
 from cpas_bayes.stats.observations import Observations
 from cpas_bayes.stats.distributions import TruncNormal
 from cpas_bayes.stats.model_parts import Context, Parameter, Prediction, one_error_model
@@ -376,7 +377,7 @@ class TestModel:
 
         lc = np.empty((theta.shape[0], obs.lc_index.size, t.size))
         if obs.lc_index.size:
-            lc = self._load_cells(ctx, seen, t)
+            lc = load_cell_drag_areas(self, ctx, seen, t)
         noise_lc = values.get("noise_lc", np.ones(theta.shape[0]))
         return Prediction(acc=acc, lc=lc, cds=cds, timing=timing,
                           noise_acc=values["noise_acc"], noise_lc=noise_lc)
@@ -393,50 +394,17 @@ class TestModel:
         ctx.stage["timing"] = timing
         for ext in self.extensions:
             cds = ext.reshape_drag_area(ctx, cds, t)
-        apparent = self._apparent(ctx, t)
+        apparent = self.apparent_drag_area(ctx, t)
         return cds, (cds if apparent is None else cds + apparent), timing
 
-    def _apparent(self, ctx, t):
+    def apparent_drag_area(self, ctx, t):
+        """The momentum terms' apparent drag area (B, P, N) at ``t``, summed; None without one."""
         total = None
         for ext in self.extensions:
             extra = ext.apparent_drag_area(ctx, t)
             if extra is not None:
                 total = extra if total is None else total + extra
         return total
-
-    def _load_cells(self, ctx, seen, t):
-        obs = self.obs
-        values = ctx.values
-        scale = values["load_scale"][:, None]
-        factor = None
-        for ext in self.extensions:
-            f = ext.friction_factor(ctx, t)
-            if f is not None:
-                factor = f
-        s = scale if factor is None else factor               # (B, 1) or (B, N)
-        lag = next((d for d in (ext.load_cell_lag(ctx) for ext in self.extensions) if d is not None), None)
-        idx = obs.lc_index
-        weights = self.chute_weight[idx][None, :, None]
-        baseline = seen[:, idx, :] / s[:, None, :] + obs.lc_weight_term[None] * (1.0 - 1.0 / s[:, None, :])
-        if lag is None:
-            return baseline
-        # The load cell at t shows the riser at t − δ; the reduction divided by the measured q̄(t). Added to the
-        # baseline as the change of the riser force over the lag (δ = 0: the baseline exactly), with q̄ and G
-        # smoothed in it: the difference of two noisy samples is noise (±5 m² on a Main's 500 m²).
-        # A response spread over several delays (a first-order cell) is their forces' weighted sum.
-        delays, node_weights = lag
-        force_lag = 0.0
-        for k, node_weight in enumerate(node_weights):
-            t_lag = t[None, :] - delays[:, k, None]                     # (B, N)
-            cds_lag, _ = self.drag_areas(ctx.stage, t_lag[:, None, :])
-            for ext in self.extensions:
-                cds_lag = ext.reshape_drag_area(ctx, cds_lag, t_lag[:, None, :])
-            extra = self._apparent(ctx, t_lag[:, None, :])
-            cds_lag = cds_lag if extra is None else cds_lag + extra
-            q_lag, g_lag = obs.smooth_qbar_at(t_lag)[:, None, :], obs.smooth_g_at(t_lag)[:, None, :]
-            force_lag = force_lag + node_weight * (q_lag * cds_lag[:, idx, :] - weights * g_lag)
-        force_now = obs.smooth_qbar_at(t)[None, None, :] * seen[:, idx, :] - weights * obs.smooth_g_at(t)[None, None, :]
-        return baseline + (force_lag - force_now) / (s[:, None, :] * obs.qbar_at(t)[None, None, :])
 
     # -- likelihood -----------------------------------------------------------
 

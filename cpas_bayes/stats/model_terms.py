@@ -70,6 +70,9 @@ from cpas_bayes.core.units import STANDARD_GRAVITY
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
+_AIR_SERIES = ("native_density", "native_airspeed", "native_qbar", "native_gamma", "native_density_rate")
+
+
 class AddedMass(Extension):
     name = "added_mass"
     practical_floor = ("k_a", 0.05)   # below: < 1/4 of the smallest added mass the Drogue tests suggest
@@ -79,8 +82,6 @@ class AddedMass(Extension):
     needs_drag_area_rate = True
 
     def parameters(self, model):
-        obs = model.obs
-        self._density_rate = np.gradient(obs.native_density, obs.native_time)
         return [Parameter("k_a", LogNormal(0.3, 1.0, 0.005, 5.0), "", self.name),
                 Parameter("mass_exponent", TruncNormal(1.5, 0.25, 1.0, 2.25), "", self.name),
                 Parameter("mass_lag", TruncNormal(0.0, 0.25, 0.0, 1.0), "s", self.name)]
@@ -95,15 +96,14 @@ class AddedMass(Extension):
         model, obs = ctx.model, ctx.model.obs
         v = ctx.values
         tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]      # (1 or B, 1, N)
-        if ctx.law is not None and t is ctx.time:   # the model's own pass (a lagged load cell's times: not)
+        if ctx.law is not None and t is ctx.time:   # the model's pass, at the bins or a load cell's lagged times
             cds, cds_rate = ctx.law
-        else:   # dCDS/dt: the law over ±1 ms
+        else:
             cds, cds_rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)
         if ctx.air is not None and t is ctx.time:   # a logger bundle: each walker's reconstructed flight
             rho, speed, qbar, gamma, rho_rate = ctx.air
         else:
-            rho, speed, qbar = obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt)
-            gamma, rho_rate = obs.gamma_at(tt), np.interp(tt, obs.native_time, self._density_rate)
+            rho, speed, qbar, gamma, rho_rate = obs.native_series_at(tt[:, 0, :], _AIR_SERIES)[:, :, None, :]
         mass, rate = lagged_added_mass(cds, cds_rate, rho, rho_rate, v["k_a"], v["mass_exponent"],
                                        ctx.stage["cds_o"], tt, v["mass_lag"])
         # dV/dt from the system's momentum balance (effects Eq. A3) with the model's own

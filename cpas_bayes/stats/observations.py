@@ -29,6 +29,7 @@ time, which is exact for a drag area that is steady or linear in the bin.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -102,6 +103,21 @@ class Observations:
 
     def density_at(self, t):
         return np.interp(t, self.native_time, self.native_density)
+
+    @cached_property
+    def native_density_rate(self):
+        """dρ/dt at the native times, kg/m³/s."""
+        return np.gradient(self.native_density, self.native_time)
+
+    def native_series_at(self, t, names):
+        """The native series ``names`` (attributes, e.g. ``"native_qbar"``) at times ``t`` (R, N), each row
+        increasing: (S, R, N), what np.interp gives each, in one walk along the native times."""
+        from cpas_bayes.stats.likelihood_kernel import interp_rows
+
+        t = np.ascontiguousarray(t, float)
+        series = np.ascontiguousarray(np.stack([getattr(self, name) for name in names]), float)
+        return interp_rows(t, np.ascontiguousarray(self.native_time, float), series,
+                           np.empty((len(names),) + t.shape))
 
     def gamma_at(self, t):
         return np.interp(t, self.native_time, self.native_gamma)
