@@ -25,6 +25,8 @@ Measured (not timed tests):
   from the MAP's ball: time per step, of it the log posterior's, and the rest
   (the sampler's own bookkeeping), with emcee's DEMove and with the package's
   vectorised move (the same proposal law; :mod:`cpas_bayes.inference.moves`).
+* term_cost: one log posterior call of 2·D + 2 walkers for the diagnosis' models with an added mass and
+  a load-cell lag (alone, together, with the discrepancy) on a synthetic Drogue and Main pair (seed 30015).
 * campaign: ``--campaign-tests`` (50) synthetic two-Drogue tests (the
   package's simulator, seeds 5000…, no hidden effect) through the main job
   with the default campaign options on 2 workers, timed end to end; from the
@@ -416,6 +418,36 @@ def bench_parallel():
 CAMPAIGN_TESTS = 50
 
 
+TERM_MODELS = ("added_mass", "sensor_lag", "added_mass+sensor_lag", "added_mass+sensor_lag+discrepancy")
+
+
+def bench_term_cost(calls=20):
+    """One log posterior call of a batch of 2·D + 2 walkers near the prior medians, for the diagnosis' models
+    with a term at lagged times (the load-cell lag beside an added mass) on a synthetic Drogue pair and Main
+    pair (seed 30015): the mean of ``calls`` calls after one to compile."""
+    from cpas_bayes.data.synth import synthesize
+    from cpas_bayes.stats.model_terms import make_extension
+
+    out = {}
+    for scenario in ("drogue", "main"):
+        test, _ = synthesize(scenario, "sensor_lag+added_mass", 30015)
+        reduction = reduce_test(test)
+        for label in TERM_MODELS:
+            model = prepare_model(test, reduction, extensions=[make_extension(n) for n in label.split("+")])
+            rng = np.random.default_rng(1)
+            theta = np.array([p.prior.ppf(0.5) for p in model.parameters])
+            rows = theta * (1 + 1e-3 * rng.standard_normal((2 * model.ndim + 2, model.ndim)))
+            for name, value in {"lag": 0.02, "lag_response": 0.01, "k_a": 0.6, "mass_lag": 0.05}.items():
+                if name in model.index:
+                    rows[:, model.index[name]] = value * (1 + 0.3 * rng.random(rows.shape[0]))
+            model(rows)
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                model(rows)
+            out[f"{scenario}:{label}"] = 1e3 * (time.perf_counter() - t0) / calls
+    return {"batch_ms": out, "summary": "; ".join(f"{k} {v:.1f} ms" for k, v in out.items())}
+
+
 def _logger_bundle(scenario, seed, effect="none"):
     """A synthetic logger bundle (no q̄: accelerometer and GNSS) in a folder that lives as long as the process."""
     import tempfile
@@ -432,6 +464,7 @@ BENCHES = {
                                                          if p.name.startswith("drogue"))),
     "fit_command_main": lambda: bench_fit_command(next(p for p in example_bundles() if p.name.startswith("main"))),
     "step_cost": bench_step_cost,
+    "term_cost": bench_term_cost,
     "diagnose_drogue": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("drogue")),
                                               "full"),
     "diagnose_main": lambda: bench_diagnose(next(p for p in example_bundles() if p.name.startswith("main")), "full"),

@@ -11,8 +11,8 @@ load-cell lag, a weighted sum over a few delays for a first-order cell
 
 At each lagged time base the stage law runs once, with its rate when a term
 reads it (an added mass, whose apparent drag area is recomputed there through
-:class:`~cpas_bayes.stats.model_parts.Context`), and the native air data are
-read in one walk for all series
+:class:`~cpas_bayes.stats.model_parts.Context`), and the smoothed q̄ and G and
+any term's air data are read in one walk for all series
 (:meth:`~cpas_bayes.stats.observations.Observations.native_series_at`): a
 Drogue's likelihood with both terms took 57 ms a batch of 72 walkers, where the
 law ran twice per delay and every series searched the native times on its own.
@@ -23,6 +23,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+
+from cpas_bayes.stats.observations import AIR_DATA
 
 _SMOOTH_FLIGHT = ("native_qbar_smooth", "native_g_smooth")
 
@@ -47,6 +49,8 @@ def load_cell_drag_areas(model, ctx, seen, t):
     # Added to the baseline as the change of the riser force over the lag (δ = 0: the baseline exactly), with
     # q̄ and G smoothed in it: the difference of two noisy samples is noise (±5 m² on a Main's 500 m²).
     needs_rate = any(ext.needs_drag_area_rate for ext in model.extensions)
+    reads_air = any(ext.reads_air_data for ext in model.extensions)
+    names = _SMOOTH_FLIGHT + (AIR_DATA if reads_air else ())
     delays, node_weights = lag
     force_lag = 0.0
     for k, node_weight in enumerate(node_weights):
@@ -56,12 +60,14 @@ def load_cell_drag_areas(model, ctx, seen, t):
             cds_lag, rate_lag, _ = model.drag_areas(ctx.stage, tt, with_rate=True)
         else:
             (cds_lag, _), rate_lag = model.drag_areas(ctx.stage, tt), None
-        lagged = replace(ctx, time=tt, law=None if rate_lag is None else (cds_lag, rate_lag), air=None)
+        flight = obs.native_series_at(t_lag, names)[:, :, None, :]    # q̄ and G smoothed, then any air data
+        q_lag, g_lag = flight[0], flight[1]
+        lagged = replace(ctx, time=tt, law=None if rate_lag is None else (cds_lag, rate_lag),
+                         air=tuple(flight[2:]) if reads_air else None)
         for ext in model.extensions:
             cds_lag = ext.reshape_drag_area(lagged, cds_lag, tt)
         extra = model.apparent_drag_area(lagged, tt)
         cds_lag = cds_lag if extra is None else cds_lag + extra
-        q_lag, g_lag = obs.native_series_at(t_lag, _SMOOTH_FLIGHT)[:, :, None, :]
         force_lag = force_lag + node_weight * (q_lag * cds_lag[:, idx, :] - weights * g_lag)
     force_now = obs.smooth_qbar_at(t)[None, None, :] * seen[:, idx, :] - weights * obs.smooth_g_at(t)[None, None, :]
     return baseline + (force_lag - force_now) / (s[:, None, :] * obs.qbar_at(t)[None, None, :])

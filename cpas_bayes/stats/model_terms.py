@@ -65,12 +65,10 @@ from cpas_bayes.physics.effects import (added_mass_acceleration, added_mass_mome
 from cpas_bayes.stats.discrepancy import Discrepancy
 from cpas_bayes.stats.model_parts import Extension, Parameter
 from cpas_bayes.stats.distributions import LogNormal, Normal, TruncNormal, Uniform
+from cpas_bayes.stats.observations import AIR_DATA
 from cpas_bayes.core.units import STANDARD_GRAVITY
 
 _LOG_2PI = math.log(2.0 * math.pi)
-
-
-_AIR_SERIES = ("native_density", "native_airspeed", "native_qbar", "native_gamma", "native_density_rate")
 
 
 class AddedMass(Extension):
@@ -100,10 +98,10 @@ class AddedMass(Extension):
             cds, cds_rate = ctx.law
         else:
             cds, cds_rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)
-        if ctx.air is not None and t is ctx.time:   # a logger bundle: each walker's reconstructed flight
+        if ctx.air is not None and t is ctx.time:   # a logger's reconstruction, or read with a lagged load cell's
             rho, speed, qbar, gamma, rho_rate = ctx.air
         else:
-            rho, speed, qbar, gamma, rho_rate = obs.native_series_at(tt[:, 0, :], _AIR_SERIES)[:, :, None, :]
+            rho, speed, qbar, gamma, rho_rate = obs.native_series_at(tt[:, 0, :], AIR_DATA)[:, :, None, :]
         mass, rate = lagged_added_mass(cds, cds_rate, rho, rho_rate, v["k_a"], v["mass_exponent"],
                                        ctx.stage["cds_o"], tt, v["mass_lag"])
         # dV/dt from the system's momentum balance (effects Eq. A3) with the model's own

@@ -43,6 +43,10 @@ TRANSIENT_BIN = {"infinite": 0.02, "finite": 0.05}
 STEADY_BIN = 0.1
 
 
+# The native series of a term's air data, in the order of ``Context.air`` (ρ, V, q̄, γ, dρ/dt)
+AIR_DATA = ("native_density", "native_airspeed", "native_qbar", "native_gamma", "native_density_rate")
+
+
 @dataclass(frozen=True)
 class Observations:
     """Binned observations of one test, SI.
