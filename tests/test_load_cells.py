@@ -1,4 +1,5 @@
-"""The load cells' reading at lagged times: the shared interpolation walk and the law handed to the terms."""
+"""The load cells' reading at lagged times: the shared interpolation walk, and the law and air data handed to
+the terms there."""
 
 from dataclasses import replace
 
@@ -40,7 +41,7 @@ def lagged_drogue():
     return model, rows
 
 
-def test_the_law_handed_to_the_added_mass_at_lagged_times_is_the_one_it_would_compute(lagged_drogue):
+def test_the_law_and_air_data_handed_to_the_added_mass_at_lagged_times_are_what_it_would_read(lagged_drogue):
     model, rows = lagged_drogue
     values = model.values(rows)
     stage = model.gather_stages(rows)
@@ -48,7 +49,10 @@ def test_the_law_handed_to_the_added_mass_at_lagged_times_is_the_one_it_would_co
     ctx.stage["timing"] = model.drag_areas(stage, model.obs.time)[1]
     tt = (model.obs.time[None, :] - np.array([0.0, 0.021, 0.3])[:, None])[:, None, :]
     cds, rate, _ = model.drag_areas(stage, tt, with_rate=True)
-    handed = model.apparent_drag_area(replace(ctx, time=tt, law=(cds, rate)), tt)
+    obs = model.obs      # each series by name with np.interp: Context.air's order (ρ, V, q̄, γ, dρ/dt)
+    air = (obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt), obs.gamma_at(tt),
+           np.interp(tt, obs.native_time, np.gradient(obs.native_density, obs.native_time)))
+    handed = model.apparent_drag_area(replace(ctx, time=tt, law=(cds, rate), air=air), tt)
     computed = model.apparent_drag_area(replace(ctx, time=model.obs.time, law=None), tt)
     np.testing.assert_allclose(handed, computed, rtol=0, atol=1e-12)
     assert np.abs(handed).max() > 0.01     # an added mass there to compare
