@@ -447,6 +447,49 @@ def test_a_screen_also_starts_with_the_new_term_typical_and_the_discrepancy_off(
                                [np.clip(theta_ref[reference_model.index[n]], *_inner(model, n)) for n in shared])
 
 
+def test_the_plain_search_starts_from_the_baselines_inflation_with_the_named_terms_at_the_references_values(
+        monkeypatch):
+    # The reference's inflation was shaped by its discrepancy, which the plain model lacks: the first starts
+    # take the baseline's MAP for what the baseline holds, the reference's values for the named lag, and
+    # each of the new term's start points; the last is the reference's MAP with the given point.
+    test, _ = synthesize("drogue", "none", 1)
+    reduction = reduce_test(test)
+    options = cf.DiagnoseOptions()
+
+    def fitted(label, quantile):
+        model = cf._model_for(label, test, reduction, options, None)
+        theta = np.array([p.prior.ppf(quantile) for p in model.parameters])
+        return SimpleNamespace(fit=SimpleNamespace(model=model, sampling=SimpleNamespace(theta_map=theta)))
+
+    baseline, reference = fitted("baseline", 0.3), fitted("sensor_lag+discrepancy", 0.7)
+    model = cf._model_for("sensor_lag+added_mass+discrepancy", test, reduction, options, None)
+    point = {"k_a": 0.5, "mass_exponent": 1.5, "mass_lag": 0.02}
+    seen = {}
+
+    def found(plain, rng, starts, guesses):
+        seen["names"], seen["guesses"] = plain.names, [np.array(g, float) for g in guesses]
+        return seen["guesses"][0], 0.0
+
+    monkeypatch.setattr(cf, "find_map", found)
+    cf._start_from_plain_optimum("sensor_lag+added_mass+discrepancy", test, reduction, options, reference, baseline,
+                                 model, {"added_mass": [point], "discrepancy": [{}]}, np.random.default_rng(0))
+    names, guesses = seen["names"], seen["guesses"]
+    term_points = next(e for e in model.extensions if e.name == "added_mass").start_points(model)
+    assert "discrepancy_log_scale" not in names and len(guesses) == len(term_points) + 1
+    value = {"baseline": dict(zip(baseline.fit.model.names, baseline.fit.sampling.theta_map)),
+             "reference": dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))}
+    for row, start in zip(guesses, term_points + [point]):
+        from_reference = row is guesses[-1]
+        for i, name in enumerate(names):
+            lo, hi = _inner(model, name)          # the full model holds the plain one's priors
+            if name in start:
+                assert row[i] == start[name]
+            elif name in ("lag", "lag_response") or from_reference:
+                assert row[i] == pytest.approx(np.clip(value["reference"][name], lo, hi))
+            else:
+                assert row[i] == pytest.approx(np.clip(value["baseline"][name], lo, hi))
+
+
 @pytest.mark.parametrize("term", ["friction_drift", "added_mass"])
 def test_a_screen_split_in_parts_searches_every_start_once_and_keeps_the_best(monkeypatch, term):
     # The two groups of starts run as separate tasks; together they are the whole screen's starts, and
@@ -480,7 +523,8 @@ def test_a_screen_split_in_parts_searches_every_start_once_and_keeps_the_best(mo
     n_points = len(cf.make_extension(term).start_points(cf._model_for(label, test, reduction, options, None)))
     # the off group: at the reference's MAP, and at the plain model's optimum (searched once per call)
     assert (ref_guesses, off_guesses, whole_guesses) == (n_points, 2, n_points + 2)
-    assert calls["plain"] == [1, 1]
+    # the plain search: from the baseline's MAP at each start point, and from the reference's
+    assert calls["plain"] == [n_points + 1, n_points + 1]
     assert (ref_off, off_off) == (False, True)
     assert ref_starts + off_starts == max(whole_starts, options.sampler.map_starts)
     best = cf.best_screen(parts + [None])
