@@ -51,7 +51,7 @@ def test_the_law_and_air_data_handed_to_the_added_mass_at_lagged_times_are_what_
     cds, rate, _ = model.drag_areas(stage, tt, with_rate=True)
     obs = model.obs      # each series by name with np.interp: Context.air's order (ρ, V, q̄, γ, dρ/dt)
     air = (obs.density_at(tt), obs.airspeed_at(tt), obs.qbar_at(tt), obs.gamma_at(tt),
-           np.interp(tt, obs.native_time, np.gradient(obs.native_density, obs.native_time)))
+           np.interp(tt, obs.native_time, obs.native_density_rate))
     handed = model.apparent_drag_area(replace(ctx, time=tt, law=(cds, rate), air=air), tt)
     computed = model.apparent_drag_area(replace(ctx, time=model.obs.time, law=None), tt)
     np.testing.assert_allclose(handed, computed, rtol=0, atol=1e-12)
