@@ -14,7 +14,7 @@ import pytest
 
 from cpas_bayes.physics.atmosphere import geopotential_altitude, standard_atmosphere
 from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
-from cpas_bayes.physics.effects import (added_mass, breathing_factor, friction_scale, friction_settle, lagged,
+from cpas_bayes.physics.effects import (added_mass, breathing_drag_area, breathing_factor, friction_scale, friction_settle, lagged,
                                         riser_tension, sensed_load_factor)
 from cpas_bayes.data.synth import truth_from_bundle
 from cpas_bayes.physics.trajectory import (BreathingParameters, ClusterParameters, SimulationOptions, VehicleProperties,
@@ -91,6 +91,39 @@ def test_breathing_factor_starts_at_one_and_dies_out():
     assert abs(b[3] - 1.0) < 1e-6
     with pytest.raises(ValueError):
         breathing_factor(tau, 0.05, 1.0, 1.0)
+
+
+def _breathing_by_numpy(cds, t, start, peak, amplitude, frequency, damping):
+    """The active stage found with numpy (the count of starts passed, less one) and breathing_factor."""
+    tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]
+    active = (start[..., :, None] <= tt[..., None, :]).sum(axis=-2) - 1
+    tau = np.where(active >= 0, tt - np.take_along_axis(peak, np.clip(active, 0, None), axis=-1), -1.0)
+    return cds * breathing_factor(tau, amplitude[:, None, None], frequency[:, None, None], damping[:, None, None])
+
+
+@pytest.mark.parametrize("per_walker_time", [False, True])
+def test_breathing_drag_area_is_the_active_stages_factor(per_walker_time):
+    """The compiled pass against the numpy statement of the same law, with a walker whose stage is undefined
+    (NaN start and peak: factor 1 from there), times before the first start, and a lagged time base."""
+    rng = np.random.default_rng(3)
+    b, p, k, n = 5, 3, 3, 400
+    start = np.sort(rng.uniform(0.0, 20.0, (b, p, k)), axis=-1)
+    peak = start + rng.uniform(0.2, 3.0, (b, p, k))
+    start[1, 2, 1] = peak[1, 2, 1] = np.nan
+    cds = rng.uniform(5.0, 500.0, (b, p, n))
+    t = np.sort(rng.uniform(-1.0, 30.0, n))
+    if per_walker_time:
+        t = t[None, None, :] - rng.uniform(0.0, 0.1, (b, 1, 1))
+    amplitude, frequency, damping = rng.uniform(0, 0.25, b), rng.uniform(0.1, 3.0, b), rng.uniform(0.01, 0.4, b)
+    got = breathing_drag_area(cds, t, start, peak, amplitude, frequency, damping)
+    np.testing.assert_allclose(got, _breathing_by_numpy(cds, t, start, peak, amplitude, frequency, damping),
+                               rtol=1e-13, atol=0)
+    if not per_walker_time:     # before the first stage starts: no ring
+        before = t < np.nanmin(start)
+        assert before.any() and np.all(got[..., before] == cds[..., before])
+    assert not np.allclose(got, cds)     # it rings
+    with pytest.raises(ValueError, match="damping_ratio"):
+        breathing_drag_area(cds, t, start, peak, amplitude, frequency, np.full(b, 1.0))
 
 
 def test_friction_settle_holds_then_decays_exponentially():

@@ -313,6 +313,57 @@ def breathing_factor(tau, amplitude, frequency_hz, damping_ratio):
     return np.where(tau >= 0, 1.0 + np.asarray(amplitude, float) * ringing, 1.0)
 
 
+def breathing_drag_area(cds, t, start, peak, amplitude, frequency_hz, damping_ratio):
+    """``cds`` (B, P, N) times :func:`breathing_factor` of the stage active at each time, τ from its peak.
+
+    The active stage at t is the last whose start has passed (the count of starts ≤ t, less one; none
+    before the first: factor 1). ``t`` is (N,) or (B, 1, N) (a lagged time base per walker); ``start`` and
+    ``peak`` (t_i + t_fp) are (B, P, K); the breathing's parameters (B,).
+
+    One compiled pass: the same as finding the active stage with numpy and calling
+    :func:`breathing_factor`, which built four (B, P, K, N) and (B, P, N) temporaries per call and took
+    more than half of a Main's lag + breathing batch (README, Measured figures)."""
+    damping_ratio = np.asarray(damping_ratio, float)
+    if np.any((damping_ratio < 0) | (damping_ratio >= 1)):
+        raise ValueError("damping_ratio must be in [0, 1)")
+    cds = np.ascontiguousarray(cds, dtype=float)
+    times = np.asarray(t, float)
+    times = np.ascontiguousarray(times.reshape(-1, times.shape[-1]))          # (1, N) or (B, N)
+    batch = cds.shape[0]
+    start, peak = (np.ascontiguousarray(np.broadcast_to(a, (batch,) + np.shape(a)[1:]), dtype=float)
+                   for a in (start, peak))
+    amplitude, frequency_hz, damping_ratio = (np.ascontiguousarray(np.broadcast_to(a, (batch,)), dtype=float)
+                                              for a in (amplitude, frequency_hz, damping_ratio))
+    out = np.empty_like(cds)
+    _breathing_drag_area_kernel(cds, times, start, peak, amplitude, frequency_hz, damping_ratio, out)
+    return out
+
+
+@numba.njit(cache=True)
+def _breathing_drag_area_kernel(cds, times, start, peak, amplitude, frequency_hz, damping_ratio, out):
+    n_batch, n_chutes, n_times = cds.shape
+    n_stages = start.shape[2]
+    per_walker = times.shape[0] > 1
+    for b in range(n_batch):
+        omega = 2.0 * np.pi * frequency_hz[b]
+        decay = -damping_ratio[b] * omega
+        omega_d = omega * np.sqrt(1.0 - damping_ratio[b] ** 2)
+        row = b if per_walker else 0
+        for p in range(n_chutes):
+            for n in range(n_times):
+                tn = times[row, n]
+                started = 0
+                for k in range(n_stages):
+                    if start[b, p, k] <= tn:
+                        started += 1
+                factor = 1.0
+                if started > 0:
+                    tau = tn - peak[b, p, started - 1]
+                    if tau >= 0.0:      # NaN (a walker's undefined stage) is not: factor 1, as in numpy
+                        factor = 1.0 + amplitude[b] * (np.exp(decay * tau) * np.sin(omega_d * tau))
+                out[b, p, n] = cds[b, p, n] * factor
+
+
 def friction_scale(t, s_start, s_end, t_start, t_end):
     """Load-cell friction factor, a linear ramp in time (seed §III.B).
 

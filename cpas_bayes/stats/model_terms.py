@@ -60,7 +60,7 @@ import math
 
 import numpy as np
 
-from cpas_bayes.physics.effects import (added_mass_acceleration, added_mass_momentum_rate, breathing_factor,
+from cpas_bayes.physics.effects import (added_mass_acceleration, added_mass_momentum_rate, breathing_drag_area,
                                         lagged_added_mass)
 from cpas_bayes.stats.discrepancy import Discrepancy
 from cpas_bayes.stats.model_parts import Extension, Parameter
@@ -203,19 +203,9 @@ class CanopyBreathing(Extension):
                 for f in frequencies]
 
     def reshape_drag_area(self, ctx, cds, t):
-        stage = ctx.stage
-        timing = stage["timing"]
-        peak = stage["start"] + timing.t_fp                        # (B, P, K)
-        tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]
-        # The stage active at each time: the last one whose start has passed.
-        started = stage["start"][..., :, None] <= tt[..., None, :]      # (B, P, K, N)
-        active = started.sum(axis=-2) - 1                                # (B, P, N), −1 before bag strip
-        peak_active = np.take_along_axis(peak, np.clip(active, 0, None), axis=-1)
-        tau = np.where(active >= 0, tt - peak_active, -1.0)
-        v = ctx.values
-        factor = breathing_factor(tau, v["breathing_amplitude"][:, None, None],
-                                  v["breathing_frequency"][:, None, None], v["breathing_damping"][:, None, None])
-        return cds * factor
+        stage, v = ctx.stage, ctx.values
+        return breathing_drag_area(cds, t, stage["start"], stage["start"] + stage["timing"].t_fp,
+                                   v["breathing_amplitude"], v["breathing_frequency"], v["breathing_damping"])
 
 
 class CorrelatedNoise(Extension):
