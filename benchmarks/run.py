@@ -26,7 +26,8 @@ Measured (not timed tests):
   (the sampler's own bookkeeping), with emcee's DEMove and with the package's
   vectorised move (the same proposal law; :mod:`cpas_bayes.inference.moves`).
 * term_cost: one log posterior call of 2·D + 2 walkers for the diagnosis' models with an added mass and
-  a load-cell lag (alone, together, with the discrepancy) on a synthetic Drogue and Main pair (seed 30015).
+  a load-cell lag (alone, together, with the discrepancy) on a synthetic Drogue and Main pair (seed 30015),
+  and with canopy breathing (alone, with the discrepancy, beside a lag; seed 30000).
 * campaign: ``--campaign-tests`` (50) synthetic two-Drogue tests (the
   package's simulator, seeds 5000…, no hidden effect) through the main job
   with the default campaign options on 2 workers, timed end to end; from the
@@ -418,33 +419,40 @@ def bench_parallel():
 CAMPAIGN_TESTS = 50
 
 
-TERM_MODELS = ("added_mass", "sensor_lag", "added_mass+sensor_lag", "added_mass+sensor_lag+discrepancy")
+TERM_MODELS = {("sensor_lag+added_mass", 30015): ("added_mass", "sensor_lag", "added_mass+sensor_lag",
+                                                   "added_mass+sensor_lag+discrepancy"),
+               ("sensor_lag+canopy_breathing", 30000): ("canopy_breathing", "canopy_breathing+discrepancy",
+                                                        "sensor_lag+canopy_breathing+discrepancy")}
 
 
-def bench_term_cost(calls=20):
+def bench_term_cost(calls=20, only=None):
     """One log posterior call of a batch of 2·D + 2 walkers near the prior medians, for the diagnosis' models
-    with a term at lagged times (the load-cell lag beside an added mass) on a synthetic Drogue pair and Main
-    pair (seed 30015): the mean of ``calls`` calls after one to compile."""
+    with a term at lagged times (the load-cell lag beside an added mass, seed 30015) or a breathing canopy
+    (beside a lag, seed 30000) on a synthetic Drogue pair and Main pair: the mean of ``calls`` calls after
+    one to compile. ``only``: one model label."""
     from cpas_bayes.data.synth import synthesize
     from cpas_bayes.stats.model_terms import make_extension
 
     out = {}
     for scenario in ("drogue", "main"):
-        test, _ = synthesize(scenario, "sensor_lag+added_mass", 30015)
-        reduction = reduce_test(test)
-        for label in TERM_MODELS:
-            model = prepare_model(test, reduction, extensions=[make_extension(n) for n in label.split("+")])
-            rng = np.random.default_rng(1)
-            theta = np.array([p.prior.ppf(0.5) for p in model.parameters])
-            rows = theta * (1 + 1e-3 * rng.standard_normal((2 * model.ndim + 2, model.ndim)))
-            for name, value in {"lag": 0.02, "lag_response": 0.01, "k_a": 0.6, "mass_lag": 0.05}.items():
-                if name in model.index:
-                    rows[:, model.index[name]] = value * (1 + 0.3 * rng.random(rows.shape[0]))
-            model(rows)
-            t0 = time.perf_counter()
-            for _ in range(calls):
+        for (effect, seed), labels in TERM_MODELS.items():
+            test, _ = synthesize(scenario, effect, seed)
+            reduction = reduce_test(test)
+            for label in labels:
+                if only is not None and label != only:
+                    continue
+                model = prepare_model(test, reduction, extensions=[make_extension(n) for n in label.split("+")])
+                rng = np.random.default_rng(1)
+                theta = np.array([p.prior.ppf(0.5) for p in model.parameters])
+                rows = theta * (1 + 1e-3 * rng.standard_normal((2 * model.ndim + 2, model.ndim)))
+                for name, value in {"lag": 0.02, "lag_response": 0.01, "k_a": 0.6, "mass_lag": 0.05}.items():
+                    if name in model.index:
+                        rows[:, model.index[name]] = value * (1 + 0.3 * rng.random(rows.shape[0]))
                 model(rows)
-            out[f"{scenario}:{label}"] = 1e3 * (time.perf_counter() - t0) / calls
+                t0 = time.perf_counter()
+                for _ in range(calls):
+                    model(rows)
+                out[f"{scenario}:{label}"] = 1e3 * (time.perf_counter() - t0) / calls
     return {"batch_ms": out, "summary": "; ".join(f"{k} {v:.1f} ms" for k, v in out.items())}
 
 
