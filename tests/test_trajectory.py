@@ -14,8 +14,8 @@ import pytest
 
 from cpas_bayes.physics.atmosphere import geopotential_altitude, standard_atmosphere
 from cpas_bayes.data.bundle import EXAMPLES_DIR, read_bundle
-from cpas_bayes.physics.effects import (added_mass, breathing_drag_area, breathing_factor, friction_scale, friction_settle, lagged,
-                                        riser_tension, sensed_load_factor)
+from cpas_bayes.physics.effects import (added_mass, breathing_drag_area, breathing_factor, friction_scale,
+                                        friction_settle, lagged, riser_tension, sensed_load_factor)
 from cpas_bayes.data.synth import truth_from_bundle
 from cpas_bayes.physics.trajectory import (BreathingParameters, ClusterParameters, SimulationOptions, VehicleProperties,
                                    VehicleState0, composite_cluster, simulate, single_run)
