@@ -1,7 +1,7 @@
 """Physical and sensor effects beyond the seed's reduction equations.
 
-Pure functions (numpy, and numba loops for a lag and the lagged added mass), each broadcasting over
-leading batch axes (runs, walkers, parachutes) with time last where there is a time axis. The simulator
+Pure functions (numpy, and numba loops for a lag, the lagged added mass and a breathing drag area), each
+broadcasting over leading batch axes (runs, walkers, parachutes) with time last where there is a time axis. The simulator
 (:mod:`cpas_bayes.physics.trajectory`), the synthetic-test generator
 (:mod:`cpas_bayes.data.synth`) and the model extensions that fit these effects all
 call these same functions, so a fitted effect means what the simulated one did.
