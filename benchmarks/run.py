@@ -425,11 +425,11 @@ TERM_MODELS = {("sensor_lag+added_mass", 30015): ("added_mass", "sensor_lag", "a
                                                         "sensor_lag+canopy_breathing+discrepancy")}
 
 
-def bench_term_cost(calls=20, only=None):
+def bench_term_cost(calls=20):
     """One log posterior call of a batch of 2·D + 2 walkers near the prior medians, for the diagnosis' models
     with a term at lagged times (the load-cell lag beside an added mass, seed 30015) or a breathing canopy
     (beside a lag, seed 30000) on a synthetic Drogue pair and Main pair: the mean of ``calls`` calls after
-    one to compile. ``only``: one model label."""
+    one to compile."""
     from cpas_bayes.data.synth import synthesize
     from cpas_bayes.stats.model_terms import make_extension
 
@@ -439,8 +439,6 @@ def bench_term_cost(calls=20, only=None):
             test, _ = synthesize(scenario, effect, seed)
             reduction = reduce_test(test)
             for label in labels:
-                if only is not None and label != only:
-                    continue
                 model = prepare_model(test, reduction, extensions=[make_extension(n) for n in label.split("+")])
                 rng = np.random.default_rng(1)
                 theta = np.array([p.prior.ppf(0.5) for p in model.parameters])
