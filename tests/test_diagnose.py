@@ -351,10 +351,15 @@ def test_forward_selection_samples_the_leader_first_and_leaves_terms_that_cannot
              (1, "canopy_breathing"): 3.0, (1, "friction_drift"): 2.0}
     sampled = []
 
-    def screened(label, test, reduction, options, reference, baseline=None, term=None, part=None):
+    plains = []      # the named terms' plain optimum each screen was given
+
+    def screened(label, test, reduction, options, reference, baseline=None, term=None, part=None,
+                 named_plain=None):
         g = gains[(int(reference.name != cf.DISCREPANCY), term)]
+        plains.append((reference.name, named_plain))
         return cf.ScreenResult(name=term, map_gain=g, size=1.0, passed=g > options.screen_gain,
-                               theta_map=np.zeros(1), seconds=0.0)
+                               theta_map=np.zeros(1), seconds=0.0,
+                               plain_optimum={"plain_of": label} if part == "off" else None)
 
     def fitted(label, *a, **kw):
         sampled.append(label)
@@ -374,6 +379,11 @@ def test_forward_selection_samples_the_leader_first_and_leaves_terms_that_cannot
     assert rounds[0]["waiting"] == waiting
     assert any("could not rival added_mass" in r for r in rounds[0]["reasons"]) is bool(waiting)
     assert [c.term for c in rounds[1]["checks"]] == []       # round 2: nothing rises, nothing sampled
+    # round 1's plain searches start from the baseline's MAP (None); round 2's from the named added mass's
+    # plain optimum, which its screen's "off" part found
+    assert {plain for ref_name, plain in plains if ref_name == cf.DISCREPANCY} == {None}
+    assert {plain["plain_of"] for ref_name, plain in plains if ref_name != cf.DISCREPANCY} == \
+        {"added_mass+discrepancy"}
 
 
 def test_paired_difference_se_is_the_arviz_formula():
@@ -488,6 +498,47 @@ def test_the_plain_search_starts_from_the_baselines_inflation_with_the_named_ter
                 assert row[i] == pytest.approx(np.clip(value["reference"][name], lo, hi))
             else:
                 assert row[i] == pytest.approx(np.clip(value["baseline"][name], lo, hi))
+
+
+def test_after_the_first_round_the_plain_search_starts_from_the_named_terms_plain_optimum(monkeypatch):
+    # Given the named lag's optimum without the discrepancy, the first starts are that optimum with the new
+    # added mass at each of its start points (not the baseline's MAP); the last is still the reference's
+    # MAP with the given point; what the search finds comes back by name.
+    test, _ = synthesize("drogue", "none", 1)
+    reduction = reduce_test(test)
+    options = cf.DiagnoseOptions()
+
+    def fitted(label, quantile):
+        model = cf._model_for(label, test, reduction, options, None)
+        theta = np.array([p.prior.ppf(quantile) for p in model.parameters])
+        return SimpleNamespace(fit=SimpleNamespace(model=model, sampling=SimpleNamespace(theta_map=theta)))
+
+    baseline, reference = fitted("baseline", 0.3), fitted("sensor_lag+discrepancy", 0.7)
+    named_model = cf._model_for("sensor_lag", test, reduction, options, None)
+    named_plain = {p.name: float(p.prior.ppf(0.6)) for p in named_model.parameters}
+    model = cf._model_for("sensor_lag+added_mass+discrepancy", test, reduction, options, None)
+    point = {"k_a": 0.5, "mass_exponent": 1.5, "mass_lag": 0.02}
+    seen = {}
+
+    def found(plain, rng, starts, guesses):
+        seen["names"], seen["guesses"] = plain.names, [np.array(g, float) for g in guesses]
+        return seen["guesses"][0] + 0.001, 0.0
+
+    monkeypatch.setattr(cf, "find_map", found)
+    rows, optimum = cf._start_from_plain_optimum(
+        "sensor_lag+added_mass+discrepancy", test, reduction, options, reference, baseline, model,
+        {"added_mass": [point], "discrepancy": [{}]}, np.random.default_rng(0), named_plain=named_plain)
+    names, guesses = seen["names"], seen["guesses"]
+    term_points = next(e for e in model.extensions if e.name == "added_mass").start_points(model)
+    assert len(guesses) == len(term_points) + 1
+    reference_values = dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))
+    for row, start in zip(guesses, term_points + [point]):
+        source = reference_values if row is guesses[-1] else named_plain
+        for i, name in enumerate(names):
+            expected = start[name] if name in start else np.clip(source[name], *_inner(model, name))
+            assert row[i] == pytest.approx(expected), name
+    assert optimum == pytest.approx(dict(zip(names, guesses[0] + 0.001)))
+    assert rows[0][model.index["k_a"]] == pytest.approx(optimum["k_a"])
 
 
 @pytest.mark.parametrize("term", ["friction_drift", "added_mass"])

@@ -96,6 +96,7 @@ class ScreenResult:
     passed: bool
     theta_map: np.ndarray
     seconds: float
+    plain_optimum: dict | None = None   # the "off" group's optimum of the same terms without the discrepancy
 
 
 # ---------------------------------------------------------------------------
@@ -194,10 +195,14 @@ def start_guesses(model, reference, points=None):
 
 def _start_rows(model, reference_model, reference_theta, points=None):
     """:func:`start_guesses` from any optimum ``reference_theta`` of ``reference_model``."""
-    base = dict(zip(reference_model.names, reference_theta))
+    return _rows_from(model, dict(zip(reference_model.names, reference_theta)), points)
+
+
+def _rows_from(model, base, points=None):
+    """:func:`start_guesses` from values {name: value}; a term none of whose parameters ``base`` holds is new."""
     points = points or {}
-    lacking = {e.name for e in _new_terms(model, reference_model)}
-    new = [e for e in model.extensions if e.name in lacking or e.name in points]
+    held = {p.group for p in model.parameters if p.name in base}
+    new = [e for e in model.extensions if e.name not in held or e.name in points]
     rows = []
     for combo in itertools.product(*[points.get(e.name, e.start_points(model)) for e in new]) if new else [()]:
         point = {k: v for d in combo for k, v in d.items()}
@@ -296,7 +301,7 @@ SCREEN_PARTS = ("reference", "off")   # a screen's two groups of starts, which m
 
 
 def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference: CandidateFit, baseline=None,
-                     term=None, part=None):
+                     term=None, part=None, named_plain=None):
     """MAP of model ``label`` from ``reference``'s MAP; passes when the log posterior rises by more
     than ``options.screen_gain`` (5) and with ``term``'s size at the MAP beyond its practical floor
     (mode ``screen``) or half of it (mode ``full``: the naming rule reads the posterior median).
@@ -310,7 +315,8 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
     Two groups of starts (:data:`SCREEN_PARTS`): ``"reference"``, the reference's MAP with the new
     term at each of its start points, and ``"off"`` (none without a discrepancy): the discrepancy
     switched off with the new term at a typical size, at the reference's MAP and at the optimum of the
-    same terms without the discrepancy (:func:`_start_from_plain_optimum`). ``part`` runs one group;
+    same terms without the discrepancy (:func:`_start_from_plain_optimum`; ``named_plain``, {name: value},
+    the optimum of the terms named so far without it, where that search starts). ``part`` runs one group;
     the better of the two (:func:`best_screen`) is the screen's answer, the same as ``part=None``'s up
     to the search's early stop.
     """
@@ -321,6 +327,7 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
     model = _model_for(label, test, reduction, options, baseline)
     reference_starts = start_guesses(model, reference)
     guesses = {"reference": reference_starts if part in (None, "reference") else [], "off": []}
+    plain_optimum = None
     discrepancy = next((e for e in model.extensions if e.name == DISCREPANCY), None)
     key = [options.seed, candidate_seed_index(label), 3] + ([1 + SCREEN_PARTS.index(part)] if part else [])
     if discrepancy is not None and part in (None, "off"):
@@ -331,8 +338,9 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
         points = {e.name: e.start_points(model)[-1:] for e in _new_terms(model, reference.fit.model)}
         points[DISCREPANCY] = discrepancy.start_points(model)[:1]
         guesses["off"] = start_guesses(model, reference, points=points)
-        guesses["off"] += _start_from_plain_optimum(label, test, reduction, options, reference, baseline, model,
-                                                    points, np.random.default_rng(key + [9]))
+        rows, plain_optimum = _start_from_plain_optimum(label, test, reduction, options, reference, baseline, model,
+                                                        points, np.random.default_rng(key + [9]), named_plain)
+        guesses["off"] += rows
     chosen = guesses["reference"] + guesses["off"]
     if not chosen:       # no discrepancy: nothing to switch off
         return None
@@ -353,15 +361,16 @@ def screen_candidate(label, test, reduction, options: DiagnoseOptions, reference
         share = 1.0 if options.mode == "screen" else FULL_MODE_FLOOR_SHARE
         passed = passed and abs(size) >= share * minimum
     return ScreenResult(name=term or label, map_gain=gain, size=size, passed=bool(passed), theta_map=theta,
-                        seconds=_time.perf_counter() - started)
+                        seconds=_time.perf_counter() - started, plain_optimum=plain_optimum)
 
 
 _OFF_STARTS = 2    # the "off" group's starts: the discrepancy off at the reference's MAP, and at the plain optimum
 
 
-def _start_from_plain_optimum(label, test, reduction, options, reference, baseline, model, points, rng):
+def _start_from_plain_optimum(label, test, reduction, options, reference, baseline, model, points, rng,
+                              named_plain=None):
     """A start of ``model`` (terms + discrepancy) from the MAP of its terms *without* the discrepancy; the
-    discrepancy at its first (off) start point.
+    discrepancy at its first (off) start point. Returns (the start rows, that MAP {name: value}).
 
     Without a discrepancy to hold the misfit the new term must explain it, and its own mode is found; the
     search with the discrepancy then starts there. On a Main with a large added mass and a friction drift
@@ -376,28 +385,38 @@ def _start_from_plain_optimum(label, test, reduction, options, reference, baseli
     exponent 1.5, lag 0.054 s), beside the lag + discrepancy fit: from the reference's MAP (one canopy's
     C_k 47 baseline sd off) the plain search ended at log p −218 (k_a 1.18, exponent 1.99), as it did from
     the baseline's with the mass' typical start behind its 0.12 s lag; from the baseline's with either of
-    its other starts, at +406.6 (k_a 0.993, exponent 1.53, lag 0.0542 s)."""
+    its other starts, at +406.6 (k_a 0.993, exponent 1.53, lag 0.0542 s).
+
+    After the first round, ``named_plain`` (the optimum of the named terms without the discrepancy, which the
+    screen of the last term named found) replaces the baseline's MAP: it is that optimum with the terms named
+    so far in their own mode, from which only the new term has to be found. From the baseline's, a Main's
+    search for added mass + lag took 37 s and one for added mass + lag + breathing 61 s (pairs seed 30003)."""
     terms, _ = label_terms(label)
     plain = _model_for(model_label(list(terms)), test, reduction, options, baseline)
     new = {k: v for k, v in points.items() if k != DISCREPANCY}
     every = {e.name: e.start_points(plain) for e in plain.extensions if e.name in new}
-    named = {}       # the terms named so far, at the reference's values
-    for p, value in zip(reference.fit.model.parameters, reference.fit.sampling.theta_map):
-        if p.group in terms and p.group not in new:
-            named.setdefault(p.group, {})[p.name] = value
-    from_baseline = _start_rows(plain, baseline.fit.model, baseline.fit.sampling.theta_map,
-                                points={**every, **{term: [point] for term, point in named.items()}})
-    starts = from_baseline + start_guesses(plain, reference, points=new)
+    if named_plain is not None:
+        from_named = _rows_from(plain, named_plain, points=every)
+    else:
+        named = {}       # the terms named so far, at the reference's values
+        for p, value in zip(reference.fit.model.parameters, reference.fit.sampling.theta_map):
+            if p.group in terms and p.group not in new:
+                named.setdefault(p.group, {})[p.name] = value
+        from_named = _start_rows(plain, baseline.fit.model, baseline.fit.sampling.theta_map,
+                                 points={**every, **{term: [point] for term, point in named.items()}})
+    starts = from_named + start_guesses(plain, reference, points=new)
     theta, _ = find_map(plain, rng, len(starts), starts)
-    return _start_rows(model, plain, theta, points={DISCREPANCY: points[DISCREPANCY]})
+    return (_start_rows(model, plain, theta, points={DISCREPANCY: points[DISCREPANCY]}),
+            dict(zip(plain.names, map(float, theta))))
 
 
 def best_screen(results):
     """One screen from its parts' results (``None`` for a part without starts): the highest MAP, with the
-    parts' seconds summed."""
+    parts' seconds summed and the "off" part's plain optimum."""
     found = [r for r in results if r is not None]
     best = max(found, key=lambda r: r.map_gain)
-    return replace(best, seconds=sum(r.seconds for r in found))
+    plain = next((r.plain_optimum for r in found if r.plain_optimum is not None), None)
+    return replace(best, seconds=sum(r.seconds for r in found), plain_optimum=plain)
 
 
 def for_tasks(candidate: CandidateFit) -> CandidateFit:

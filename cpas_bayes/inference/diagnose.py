@@ -103,8 +103,9 @@ class Diagnosis:
 
 
 def _screen_task(job):
-    label, term, test, reduction, options, reference, baseline, part = job
-    return screen_candidate(label, test, reduction, options, reference, baseline=baseline, term=term, part=part)
+    label, term, test, reduction, options, reference, baseline, part, named_plain = job
+    return screen_candidate(label, test, reduction, options, reference, baseline=baseline, term=term, part=part,
+                            named_plain=named_plain)
 
 
 def _candidate_task(job, executor=None):
@@ -381,6 +382,7 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
     """Name terms one at a time, each judged with the discrepancy present; returns (named, reference, rounds,
     fits, first screen)."""
     named, reference, rounds, fits, first_screen = [], discrepancy, [], {}, {}
+    named_plain = None      # the named terms' optimum without the discrepancy (None: the baseline's MAP)
     trial = None            # a term named without a clear lead over ``trial[1]``
     # taking the discrepancy over (the rule's second path) needs a misfit the discrepancy found to begin with
     misfit = passes(*paired_difference(discrepancy, baseline), options)
@@ -393,9 +395,10 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
         # each screen's two groups of starts as tasks of their own: an added mass's searches from the
         # reference (~60 s on a Main) would otherwise hold one worker while the other idles
         light_reference, light_baseline = for_tasks(reference), for_tasks(baseline)
-        tasks = [(t, part) for part in SCREEN_PARTS for t in remaining]
+        # the "off" groups first: their plain searches are the long tasks, so the workers end together
+        tasks = [(t, part) for part in reversed(SCREEN_PARTS) for t in remaining]
         results = executor.map(_screen_task, [(labels[t], t, test, reduction, options, light_reference,
-                                               light_baseline, part) for t, part in tasks],
+                                               light_baseline, part, named_plain) for t, part in tasks],
                                desc="screen", progress=False)
         screen = {t: best_screen([r for (u, _), r in zip(tasks, results) if u == t]) for t in remaining}
         for t, r in screen.items():
@@ -447,6 +450,7 @@ def _forward_selection(test, reduction, options, baseline, discrepancy, terms, e
             trial = (chosen, passing[0].term)
         named.append(chosen)
         reference = fitted[chosen]
+        named_plain = screen[chosen].plain_optimum
     return named, reference, rounds, fits, first_screen
 
 
