@@ -457,65 +457,29 @@ def test_a_screen_also_starts_with_the_new_term_typical_and_the_discrepancy_off(
                                [np.clip(theta_ref[reference_model.index[n]], *_inner(model, n)) for n in shared])
 
 
-def test_the_plain_search_starts_from_the_baselines_inflation_with_the_named_terms_at_the_references_values(
-        monkeypatch):
-    # The reference's inflation was shaped by its discrepancy, which the plain model lacks: the first starts
-    # take the baseline's MAP for what the baseline holds, the reference's values for the named lag, and
-    # each of the new term's start points; the last is the reference's MAP with the given point.
+@pytest.mark.parametrize("given_named_plain", [False, True])
+def test_the_plain_search_starts_from_the_named_terms_plain_optimum_or_the_baselines_inflation(
+        monkeypatch, given_named_plain):
+    # The reference's inflation was shaped by its discrepancy, which the plain model lacks. In the first
+    # round the first starts take the baseline's MAP for what the baseline holds, the reference's values for
+    # the named lag, and each of the new term's start points; after it, the named lag's optimum without the
+    # discrepancy (``named_plain``) for all of those. The last start is the reference's MAP with the given
+    # point; what the search finds comes back by name.
     test, _ = synthesize("drogue", "none", 1)
     reduction = reduce_test(test)
     options = cf.DiagnoseOptions()
 
-    def fitted(label, quantile):
+    def values(label, quantile):
         model = cf._model_for(label, test, reduction, options, None)
-        theta = np.array([p.prior.ppf(quantile) for p in model.parameters])
-        return SimpleNamespace(fit=SimpleNamespace(model=model, sampling=SimpleNamespace(theta_map=theta)))
-
-    baseline, reference = fitted("baseline", 0.3), fitted("sensor_lag+discrepancy", 0.7)
-    model = cf._model_for("sensor_lag+added_mass+discrepancy", test, reduction, options, None)
-    point = {"k_a": 0.5, "mass_exponent": 1.5, "mass_lag": 0.02}
-    seen = {}
-
-    def found(plain, rng, starts, guesses):
-        seen["names"], seen["guesses"] = plain.names, [np.array(g, float) for g in guesses]
-        return seen["guesses"][0], 0.0
-
-    monkeypatch.setattr(cf, "find_map", found)
-    cf._start_from_plain_optimum("sensor_lag+added_mass+discrepancy", test, reduction, options, reference, baseline,
-                                 model, {"added_mass": [point], "discrepancy": [{}]}, np.random.default_rng(0))
-    names, guesses = seen["names"], seen["guesses"]
-    term_points = next(e for e in model.extensions if e.name == "added_mass").start_points(model)
-    assert "discrepancy_log_scale" not in names and len(guesses) == len(term_points) + 1
-    value = {"baseline": dict(zip(baseline.fit.model.names, baseline.fit.sampling.theta_map)),
-             "reference": dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))}
-    for row, start in zip(guesses, term_points + [point]):
-        from_reference = row is guesses[-1]
-        for i, name in enumerate(names):
-            lo, hi = _inner(model, name)          # the full model holds the plain one's priors
-            if name in start:
-                assert row[i] == start[name]
-            elif name in ("lag", "lag_response") or from_reference:
-                assert row[i] == pytest.approx(np.clip(value["reference"][name], lo, hi))
-            else:
-                assert row[i] == pytest.approx(np.clip(value["baseline"][name], lo, hi))
-
-
-def test_after_the_first_round_the_plain_search_starts_from_the_named_terms_plain_optimum(monkeypatch):
-    # Given the named lag's optimum without the discrepancy, the first starts are that optimum with the new
-    # added mass at each of its start points (not the baseline's MAP); the last is still the reference's
-    # MAP with the given point; what the search finds comes back by name.
-    test, _ = synthesize("drogue", "none", 1)
-    reduction = reduce_test(test)
-    options = cf.DiagnoseOptions()
+        return model, {p.name: float(p.prior.ppf(quantile)) for p in model.parameters}
 
     def fitted(label, quantile):
-        model = cf._model_for(label, test, reduction, options, None)
-        theta = np.array([p.prior.ppf(quantile) for p in model.parameters])
-        return SimpleNamespace(fit=SimpleNamespace(model=model, sampling=SimpleNamespace(theta_map=theta)))
+        model, theta = values(label, quantile)
+        return SimpleNamespace(fit=SimpleNamespace(model=model, sampling=SimpleNamespace(
+            theta_map=np.array(list(theta.values())))))
 
     baseline, reference = fitted("baseline", 0.3), fitted("sensor_lag+discrepancy", 0.7)
-    named_model = cf._model_for("sensor_lag", test, reduction, options, None)
-    named_plain = {p.name: float(p.prior.ppf(0.6)) for p in named_model.parameters}
+    named_plain = values("sensor_lag", 0.6)[1] if given_named_plain else None
     model = cf._model_for("sensor_lag+added_mass+discrepancy", test, reduction, options, None)
     point = {"k_a": 0.5, "mass_exponent": 1.5, "mass_lag": 0.02}
     seen = {}
@@ -530,11 +494,16 @@ def test_after_the_first_round_the_plain_search_starts_from_the_named_terms_plai
         {"added_mass": [point], "discrepancy": [{}]}, np.random.default_rng(0), named_plain=named_plain)
     names, guesses = seen["names"], seen["guesses"]
     term_points = next(e for e in model.extensions if e.name == "added_mass").start_points(model)
-    assert len(guesses) == len(term_points) + 1
-    reference_values = dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))
+    assert "discrepancy_log_scale" not in names and len(guesses) == len(term_points) + 1
+    value = {"baseline": dict(zip(baseline.fit.model.names, baseline.fit.sampling.theta_map)),
+             "reference": dict(zip(reference.fit.model.names, reference.fit.sampling.theta_map))}
     for row, start in zip(guesses, term_points + [point]):
-        source = reference_values if row is guesses[-1] else named_plain
         for i, name in enumerate(names):
+            if row is guesses[-1] or (named_plain is None and name in ("lag", "lag_response")):
+                source = value["reference"]
+            else:
+                source = named_plain if named_plain is not None else value["baseline"]
+            # the full model holds the plain one's priors
             expected = start[name] if name in start else np.clip(source[name], *_inner(model, name))
             assert row[i] == pytest.approx(expected), name
     assert optimum == pytest.approx(dict(zip(names, guesses[0] + 0.001)))
