@@ -395,16 +395,12 @@ def _start_from_plain_optimum(label, test, reduction, options, reference, baseli
     plain = _model_for(model_label(list(terms)), test, reduction, options, baseline)
     new = {k: v for k, v in points.items() if k != DISCREPANCY}
     every = {e.name: e.start_points(plain) for e in plain.extensions if e.name in new}
-    if named_plain is not None:
-        from_named = _rows_from(plain, named_plain, points=every)
-    else:
-        named = {}       # the terms named so far, at the reference's values
-        for p, value in zip(reference.fit.model.parameters, reference.fit.sampling.theta_map):
-            if p.group in terms and p.group not in new:
-                named.setdefault(p.group, {})[p.name] = value
-        from_named = _start_rows(plain, baseline.fit.model, baseline.fit.sampling.theta_map,
-                                 points={**every, **{term: [point] for term, point in named.items()}})
-    starts = from_named + start_guesses(plain, reference, points=new)
+    if named_plain is None:   # the first round: the baseline's MAP, any named terms at the reference's values
+        named_plain = dict(zip(baseline.fit.model.names, baseline.fit.sampling.theta_map))
+        named_plain.update({p.name: value for p, value in zip(reference.fit.model.parameters,
+                                                              reference.fit.sampling.theta_map)
+                            if p.group in terms and p.group not in new})
+    starts = _rows_from(plain, named_plain, points=every) + start_guesses(plain, reference, points=new)
     theta, _ = find_map(plain, rng, len(starts), starts)
     return (_start_rows(model, plain, theta, points={DISCREPANCY: points[DISCREPANCY]}),
             dict(zip(plain.names, map(float, theta))))
