@@ -50,26 +50,33 @@ def load_cell_drag_areas(model, ctx, seen, t):
         return baseline
     # Added to the baseline as the change of the riser force over the lag (δ = 0: the baseline exactly), with
     # q̄ and G smoothed in it: the difference of two noisy samples is noise (±5 m² on a Main's 500 m²).
-    needs_rate = any(ext.needs_drag_area_rate for ext in model.extensions)
-    reads_air = any(ext.reads_air_data for ext in model.extensions)
-    names = _SMOOTH_FLIGHT + (AIR_DATA if reads_air else ())
     delays, node_weights = lag
     force_lag = 0.0
     for k, node_weight in enumerate(node_weights):
-        t_lag = t[None, :] - delays[:, k, None]                     # (B, N)
-        tt = t_lag[:, None, :]
-        if needs_rate:
-            cds_lag, rate_lag, _ = model.drag_areas(ctx.stage, tt, with_rate=True)
-        else:
-            (cds_lag, _), rate_lag = model.drag_areas(ctx.stage, tt), None
-        flight = obs.native_series_at(t_lag, names)[:, :, None, :]    # q̄ and G smoothed, then any air data
-        q_lag, g_lag = flight[0], flight[1]
-        lagged = replace(ctx, time=tt, law=None if rate_lag is None else (cds_lag, rate_lag),
-                         air=tuple(flight[2:]) if reads_air else None)
-        for ext in model.extensions:
-            cds_lag = ext.reshape_drag_area(lagged, cds_lag, tt)
-        extra = model.apparent_drag_area(lagged, tt)
-        cds_lag = cds_lag if extra is None else cds_lag + extra
-        force_lag = force_lag + node_weight * (q_lag * cds_lag[:, idx, :] - weights * g_lag)
+        force_lag = force_lag + node_weight * riser_force_at(model, ctx, t[None, :] - delays[:, k, None])
     force_now = obs.smooth_qbar_at(t)[None, None, :] * seen[:, idx, :] - weights * obs.smooth_g_at(t)[None, None, :]
     return baseline + (force_lag - force_now) / (s[:, None, :] * obs.qbar_at(t)[None, None, :])
+
+
+def riser_force_at(model, ctx, times):
+    """The load cells' riser forces q̄·CDS_seen − W_p·G (N), (B, L, M), at a time base ``times`` (B, M) per
+    walker: the stage law run there (with its rate when a term reads it), the extensions' reshaping and any
+    apparent drag area recomputed there, with q̄ and G smoothed."""
+    obs = model.obs
+    idx = obs.lc_index
+    needs_rate = any(ext.needs_drag_area_rate for ext in model.extensions)
+    reads_air = any(ext.reads_air_data for ext in model.extensions)
+    names = _SMOOTH_FLIGHT + (AIR_DATA if reads_air else ())
+    tt = times[:, None, :]
+    if needs_rate:
+        cds, rate, _ = model.drag_areas(ctx.stage, tt, with_rate=True)
+    else:
+        (cds, _), rate = model.drag_areas(ctx.stage, tt), None
+    flight = obs.native_series_at(times, names)[:, :, None, :]    # q̄ and G smoothed, then any air data
+    there = replace(ctx, time=tt, law=None if rate is None else (cds, rate),
+                    air=tuple(flight[2:]) if reads_air else None)
+    for ext in model.extensions:
+        cds = ext.reshape_drag_area(there, cds, tt)
+    extra = model.apparent_drag_area(there, tt)
+    cds = cds if extra is None else cds + extra
+    return flight[0] * cds[:, idx, :] - model.chute_weight[idx][None, :, None] * flight[1]
