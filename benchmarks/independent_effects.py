@@ -28,7 +28,19 @@ accel_zero_drift    G + 0.05·(t − t_1)/(t_end − t_1) after the first stage 
                     t_1: the accelerometer's zero drifts (load cells unchanged)
 accel_warm_drift    G + 0.05·((t − t_0)/(t_end − t_0))²: the zero drifts from the      ``unexplained``
                     record's start as the sensor warms, faster later
+canopy_pulse        each canopy's drag force × (1 + b_i(t)) from its full-open peak ``canopy_breathing``
+                    on: b_i = A·(1 − e^(−τ·f₀))·sin(φ_i + 2π·f₀·(τ + 0.05·τ²/T)),
+                    sustained (no damping), building up over a period, a random
+                    phase per canopy, the frequency drifting 10 % over the rest of
+                    the record (A 0.06; f₀ 1.0 Hz Drogue, 0.3 Hz Main); the
+                    vehicle slows under the extra drag (first order: ΔV̇ =
+                    −ΣΔD_i/m, Δq̄ = ρ·V·ΔV, every force and G re-formed)
+cell_filter+        both at once                                                    both named
+canopy_pulse
 ==================  ==============================================================  ==================
+
+``canopy_pulse`` is a catalogued cause in a form its term was not written for: the term
+(``canopy_breathing``) rings from each stage's peak with one damping ratio, phase zero at the peak.
 
     python benchmarks/independent_effects.py --out /tmp/independent_effects [--parallel 2] [--effects a,b]
 
@@ -59,7 +71,8 @@ SCENARIOS = {"drogue": "drogue-clean", "main": "main-clean"}
 RIGHT = {"none": [], "cell_filter": ["sensor_lag"], "friction_sag": ["friction_drift"],
          "cell_filter+friction_sag": ["sensor_lag", "friction_drift"], "pitot_filter": ["unexplained"],
          "accel_saturation": ["unexplained"], "cell_zero_step": ["unexplained"], "riser_ring": ["unexplained"],
-         "accel_zero_drift": ["unexplained"], "accel_warm_drift": ["unexplained"]}
+         "accel_zero_drift": ["unexplained"], "accel_warm_drift": ["unexplained"],
+         "canopy_pulse": ["canopy_breathing"], "cell_filter+canopy_pulse": ["sensor_lag", "canopy_breathing"]}
 COLUMNS = ["scenario", "effect", "right", "causes", "verdict_right", "unexplained_gain", "unexplained_se",
            "warnings", "seconds"]
 
@@ -70,6 +83,10 @@ SATURATION = 0.82      # G ceiling / peak G
 ZERO_STEP = 0.06       # the cell's zero step / its peak reading
 RING = (0.15, 0.4, 6.0)   # amplitude (of the reading 0.3 s after the start), decay time constant s, Hz
 G_DRIFT = 0.05         # g at the record's end
+PULSE = 0.06           # the sustained breathing's relative amplitude of the drag force
+PULSE_HZ = {"drogue": 1.0, "main": 0.3}
+PULSE_ONSET = {"drogue": 2.0, "main": 5.0}   # s after full open within which a canopy's peak is sought
+G0 = 32.174            # ft/s², the bundles' US units
 
 
 def _one_pole(x, a, settled):
@@ -102,6 +119,47 @@ def stage_starts(test):
 
 def cells(test):
     return [(p["id"], p["load_cell"]) for p in test["parachute"] if "load_cell" in p]
+
+
+def scenario_of(test):
+    return "main" if test.get("phase") == "main" else "drogue"
+
+
+def sustained_breathing(test, data, rng):
+    """``canopy_pulse``: each canopy's drag D_i = F_i + W_p,i·G (lbf) grows by b_i(t)·D_i, and the vehicle
+    responds to first order: ΔV(t) = −∫ΣΔD_i·cos θ_i/m dt, Δq̄ = ρ·V·ΔV; each drag is re-formed at the new q̄,
+    the cells read D_i' − W_p,i·G', and G' = G + (ΣΔF_i·cos θ_i + Δq̄·CDS_V)/W_V."""
+    t = data["time"]
+    scenario = scenario_of(test)
+    f0, span = PULSE_HZ[scenario], t[-1] - t[0]
+    chutes = [p for p in test["parachute"] if "load_cell" in p]
+    drag, factor, cosines = {}, {}, {}
+    for p in chutes:
+        col = p["load_cell"]
+        full = max(s["start"] for s in p["stage"])
+        window = (t >= full) & (t <= full + PULSE_ONSET[scenario])
+        onset = t[window][np.argmax(data[col][window])]
+        tau = np.clip(t - onset, 0.0, None)
+        phase = rng.uniform(0.0, 2 * np.pi)
+        b = PULSE * (1.0 - np.exp(-tau * f0)) * np.sin(phase + 2 * np.pi * f0 * (tau + 0.05 * tau ** 2 / span))
+        drag[col] = data[col] + p["weight"] * data["G"]
+        factor[col] = np.where(t >= onset, b, 0.0)
+        angle = p.get("flyout_angle")
+        cosines[col] = np.cos(np.radians(data[angle])) if angle in data else 1.0
+    mass = (test["vehicle"]["weight"] + sum(p["weight"] for p in chutes)) / G0
+    extra = sum(factor[c] * drag[c] * cosines[c] for c in drag)
+    dv = -np.concatenate([[0.0], np.cumsum(0.5 * (extra[1:] + extra[:-1]) * np.diff(t))]) / mass   # ft/s
+    dq = data["density"] * data["airspeed"] * dv
+    ratio = 1.0 + dq / data["qbar"]
+    force_change = {c: drag[c] * ((1.0 + factor[c]) * ratio - 1.0) for c in drag}
+    dg = (sum(force_change[c] * cosines[c] for c in drag) + dq * test["vehicle"]["cds"]) / test["vehicle"]["weight"]
+    for p in chutes:
+        col = p["load_cell"]
+        data[col] = data[col] + force_change[col] - p["weight"] * dg
+    data["G"] = data["G"] + dg
+    data["qbar"] = data["qbar"] + dq
+    data["airspeed"] = data["airspeed"] + dv
+    return data
 
 
 def apply_effect(effect, test, data, rng):
@@ -146,6 +204,8 @@ def apply_effect(effect, test, data, rng):
             data["G"] = data["G"] + np.where(t > first, G_DRIFT * (t - first) / (t[-1] - first), 0.0)
         elif part == "accel_warm_drift":
             data["G"] = data["G"] + G_DRIFT * ((t - t[0]) / (t[-1] - t[0])) ** 2
+        elif part == "canopy_pulse":
+            data = sustained_breathing(test, data, rng)
         else:
             raise SystemExit(f"unknown effect {part!r}; use some of {', '.join(RIGHT)}")
     return data

@@ -5,13 +5,19 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cpas_bayes.stats.model_terms import EXTENSIONS, PHYSICAL, make_extension
+from cpas_bayes.stats.model_terms import BREATHING_PHASE, EXTENSIONS, PHYSICAL, make_extension
 from cpas_bayes.inference.fit import prepare_model
 from cpas_bayes.data.reduction import reduce_test
 from cpas_bayes.data.synth import synthesize, truth_parameter_values
 
 NEUTRAL = {"k_a": 0.0, "mass_exponent": 1.5, "mass_lag": 0.0, "load_scale_change": 0.0, "lag": 0.0,
-           "lag_response": 0.0, "breathing_amplitude": 0.0, "breathing_frequency": 1.0, "breathing_damping": 0.2}
+           "lag_response": 0.0, "breathing_amplitude": 0.0, "breathing_frequency": 1.0, "breathing_damping": 0.2,
+           "breathing_reefed_share": 1.0}
+
+
+def _value(values, name):
+    """A parameter's value from ``values``; a canopy's breathing phase 0 (the simulator's ring), others 1."""
+    return values.get(name, 0.0 if name.startswith(BREATHING_PHASE) else 1.0)
 
 
 def _true_extension_values(effect, params):
@@ -24,7 +30,7 @@ def _true_extension_values(effect, params):
     if effect == "sensor_lag":
         return {"lag": params["lag"], "lag_response": 0.0}
     return {"breathing_amplitude": params["amplitude"], "breathing_frequency": params["frequency_hz"],
-            "breathing_damping": params["damping_ratio"]}
+            "breathing_damping": params["damping_ratio"], "breathing_reefed_share": 1.0}
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +45,7 @@ def test_a_zero_size_extension_is_the_baseline(clean_drogue, name):
     base = prepare_model(test, reduction)
     ext = prepare_model(test, reduction, extensions=[make_extension(name)])
     theta_base = np.array([truth.get(n, 1.0) for n in base.names])
-    theta_ext = np.array([truth.get(n, NEUTRAL.get(n, 1.0)) for n in ext.names])
+    theta_ext = np.array([_value({**NEUTRAL, **truth}, n) for n in ext.names])
     assert ext.log_likelihood(theta_ext[None])[0] == pytest.approx(base.log_likelihood(theta_base[None])[0],
                                                                    rel=1e-10)
 
@@ -99,7 +105,7 @@ def test_each_extension_explains_its_own_effect_and_no_other(scenario, effect):
         values = dict(truth, **NEUTRAL)
         if name == effect:
             values.update(_true_extension_values(effect, truth_doc["effect_params"]))
-        theta = np.array([values.get(n, 1.0) for n in model.names])[None]
+        theta = np.array([_value(values, n) for n in model.names])[None]
         gains[name] = model.log_likelihood(theta)[0] - baseline
     assert gains[effect] > 500, gains
     assert all(gains[effect] > 20 * max(abs(g), 1.0) for n, g in gains.items() if n != effect), gains
@@ -113,7 +119,7 @@ def _gains_at_forms(test, truth_doc, term, forms):
     base = prepare_model(test, reduction)
     baseline = base.log_likelihood(np.array([truth.get(n, 1.0) for n in base.names])[None])[0]
     model = prepare_model(test, reduction, extensions=[make_extension(term)])
-    return {label: model.log_likelihood(np.array([{**truth, **NEUTRAL, **form}.get(n, 1.0)
+    return {label: model.log_likelihood(np.array([_value({**truth, **NEUTRAL, **form}, n)
                                                   for n in model.names])[None])[0] - baseline
             for label, form in forms.items()}
 

@@ -15,9 +15,10 @@ from cpas_bayes.data.synth_logger import (draw_logger_truth, logger_streams, sim
 from cpas_bayes.data.synth_logger_truth import logger_truth_parameters
 from cpas_bayes.inference.fit import prepare_model
 from cpas_bayes.physics.effects import breathing_factor
-from cpas_bayes.stats.model_terms import applies, make_extension
+from cpas_bayes.stats.model_terms import BREATHING_PHASE, applies, make_extension
 
-NEUTRAL = {"canopy_breathing": {"breathing_amplitude": 0.0, "breathing_frequency": 1.0, "breathing_damping": 0.2},
+NEUTRAL = {"canopy_breathing": {"breathing_amplitude": 0.0, "breathing_frequency": 1.0, "breathing_damping": 0.2,
+                                "breathing_reefed_share": 1.0, BREATHING_PHASE + "M1": 0.0},
            "discrepancy": {"discrepancy_log_scale": -30.0},      # σ_δ = e⁻³⁰: the term is off
            "correlated_noise": {"ar_time": 1e-4}}                # τ_c far below the 0.02 s bins
 

@@ -93,12 +93,22 @@ def test_breathing_factor_starts_at_one_and_dies_out():
         breathing_factor(tau, 0.05, 1.0, 1.0)
 
 
-def _breathing_by_numpy(cds, t, start, peak, amplitude, frequency, damping):
-    """The active stage found with numpy (the count of starts passed, less one) and breathing_factor."""
+def _breathing_by_numpy(cds, t, start, peak, amplitude, frequency, damping, phase=None, share=None):
+    """The active stage found with numpy (the count of starts passed, less one) and breathing_factor; with a
+    phase (B, P) and a reefed share (B,), the ring A_k·e^(−ζωτ)·[sin(ω_d·τ + φ) − sin φ] written out."""
     tt = t if np.ndim(t) == 3 else np.asarray(t)[None, None, :]
     active = (start[..., :, None] <= tt[..., None, :]).sum(axis=-2) - 1
     tau = np.where(active >= 0, tt - np.take_along_axis(peak, np.clip(active, 0, None), axis=-1), -1.0)
-    return cds * breathing_factor(tau, amplitude[:, None, None], frequency[:, None, None], damping[:, None, None])
+    if phase is None:
+        return cds * breathing_factor(tau, amplitude[:, None, None], frequency[:, None, None],
+                                      damping[:, None, None])
+    last = np.isfinite(start).sum(axis=-1)[..., None] - 1                        # (B, P, 1)
+    a = amplitude[:, None, None] * np.where(active == last, 1.0, share[:, None, None])
+    omega, zeta, after = 2 * np.pi * frequency[:, None, None], damping[:, None, None], np.clip(tau, 0.0, None)
+    x = omega * np.sqrt(1 - zeta ** 2) * after
+    ring = np.exp(-zeta * omega * after) * (np.sin(x + phase[..., None]) - np.sin(phase[..., None]))
+    with np.errstate(invalid="ignore"):
+        return cds * np.where(tau >= 0, 1.0 + a * ring, 1.0)
 
 
 @pytest.mark.parametrize("per_walker_time", [False, True])
@@ -114,10 +124,19 @@ def test_breathing_drag_area_is_the_active_stages_factor(per_walker_time):
     t = np.sort(rng.uniform(-1.0, 30.0, n))
     if per_walker_time:
         t = t[None, None, :] - rng.uniform(0.0, 0.1, (b, 1, 1))
-    amplitude, frequency, damping = rng.uniform(0, 0.25, b), rng.uniform(0.1, 3.0, b), rng.uniform(0.01, 0.4, b)
+    amplitude, frequency, damping = rng.uniform(0, 0.25, b), rng.uniform(0.1, 3.0, b), rng.uniform(0.0, 0.4, b)
     got = breathing_drag_area(cds, t, start, peak, amplitude, frequency, damping)
     np.testing.assert_allclose(got, _breathing_by_numpy(cds, t, start, peak, amplitude, frequency, damping),
                                rtol=1e-13, atol=0)
+    # a phase per canopy and a share of the ring in the stages before the last: the same law written out,
+    # and at φ = 0, share 1 the ring above to the last bits
+    phase, share = rng.uniform(-np.pi, np.pi, (b, p)), rng.uniform(0.0, 2.0, b)
+    shaped = breathing_drag_area(cds, t, start, peak, amplitude, frequency, damping, phase, share)
+    np.testing.assert_allclose(shaped, _breathing_by_numpy(cds, t, start, peak, amplitude, frequency, damping,
+                                                           phase, share), rtol=1e-12, atol=0)
+    assert not np.allclose(shaped, got)
+    np.testing.assert_allclose(breathing_drag_area(cds, t, start, peak, amplitude, frequency, damping,
+                                                   np.zeros((b, p)), np.ones(b)), got, rtol=1e-15, atol=0)
     if not per_walker_time:     # before the first stage starts: no ring
         before = t < np.nanmin(start)
         assert before.any() and np.all(got[..., before] == cds[..., before])

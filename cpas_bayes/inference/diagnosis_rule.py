@@ -37,8 +37,10 @@ T may be named when
 * no parameter of T sits at the edge of its prior: the posterior's 5 % or
   95 % quantile beyond the prior's 0.5 % or 99.5 % point (a stand-in that
   would go further if allowed), except the size parameter's lower side,
-  which the floor covers, and a lower bound that is a physical limit
-  (``Extension.physical_lower_limits``: an added-mass lag of 0);
+  which the floor covers, a lower bound that is a physical limit
+  (``Extension.physical_lower_limits``: an added-mass lag of 0, a breathing
+  that does not die away), and an angle (``Extension.periodic``: a canopy's
+  breathing phase, whose ±π is one point);
 * its size parameter does not repeat its prior (posterior variance < 90 % of
   the prior's): otherwise the data did not inform it;
 * it leads every other passing term clearly: by > ``min_margin_se`` (2) se of
@@ -266,7 +268,9 @@ def parameter_health(candidate: CandidateFit, term: str, rng=None):
         x = np.asarray(post[p.name].values, float).ravel()
         q05, q50, q95 = np.quantile(x, (0.05, 0.5, 0.95))
         edge = None
-        if float(p.prior.cdf(q95)) > 1 - EDGE_QUANTILE:
+        if p.name.startswith(extension.periodic or ("\0",)):
+            pass      # an angle: its prior's bounds are one point of a circle
+        elif float(p.prior.cdf(q95)) > 1 - EDGE_QUANTILE:
             edge = "upper"
         elif (float(p.prior.cdf(q05)) < EDGE_QUANTILE and p.name != size_name
               and p.name not in extension.physical_lower_limits):

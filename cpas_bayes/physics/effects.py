@@ -313,12 +313,22 @@ def breathing_factor(tau, amplitude, frequency_hz, damping_ratio):
     return np.where(tau >= 0, 1.0 + np.asarray(amplitude, float) * ringing, 1.0)
 
 
-def breathing_drag_area(cds, t, start, peak, amplitude, frequency_hz, damping_ratio):
-    """``cds`` (B, P, N) times :func:`breathing_factor` of the stage active at each time, τ from its peak.
+def breathing_drag_area(cds, t, start, peak, amplitude, frequency_hz, damping_ratio, phase=0.0, reefed_share=1.0):
+    """``cds`` (B, P, N) times the breathing factor of the stage active at each time, τ from its peak::
+
+        b = 1 + A_k·exp(−ζωτ)·[cos φ_p·sin(ω_d·τ) + sin φ_p·(cos(ω_d·τ) − 1)],   ω_d = ω·sqrt(1 − ζ²)
+
+    i.e. A_k·e^(−ζωτ)·[sin(ω_d·τ + φ_p) − sin φ_p]: a ring of phase φ_p at the canopy's peak that starts
+    from zero, so the drag area stays continuous. A_k is A in the canopy's
+    last stage (full open) and ``reefed_share``·A in the stages before it. With φ = 0 and the share 1 it is
+    :func:`breathing_factor` at every stage (the synthetic tests' form); a phase per canopy and a share let
+    a breathing that the peak does not set going in phase, or one that only the open canopy shows, be read
+    as breathing too.
 
     The active stage at t is the last whose start has passed (the count of starts ≤ t, less one; none
-    before the first: factor 1). ``t`` is (N,) or (B, 1, N) (a lagged time base per walker); ``start`` and
-    ``peak`` (t_i + t_fp) are (B, P, K); the breathing's parameters (B,).
+    before the first: factor 1); a canopy's last stage is its last with a finite start. ``t`` is (N,) or
+    (B, 1, N) (a lagged time base per walker); ``start`` and ``peak`` (t_i + t_fp) are (B, P, K); the
+    breathing's parameters (B,), ``phase`` (B, P) or broadcastable, rad.
 
     One compiled pass: the same as finding the active stage with numpy and calling
     :func:`breathing_factor`, which built four (B, P, K, N) and (B, P, N) temporaries per call and took
@@ -332,15 +342,22 @@ def breathing_drag_area(cds, t, start, peak, amplitude, frequency_hz, damping_ra
     batch = cds.shape[0]
     start, peak = (np.ascontiguousarray(np.broadcast_to(a, (batch,) + np.shape(a)[1:]), dtype=float)
                    for a in (start, peak))
-    amplitude, frequency_hz, damping_ratio = (np.ascontiguousarray(np.broadcast_to(a, (batch,)), dtype=float)
-                                              for a in (amplitude, frequency_hz, damping_ratio))
+    amplitude, frequency_hz, damping_ratio, reefed_share = (
+        np.ascontiguousarray(np.broadcast_to(a, (batch,)), dtype=float)
+        for a in (amplitude, frequency_hz, damping_ratio, reefed_share))
+    phase = np.asarray(phase, float)
+    phase = np.broadcast_to(phase.reshape(phase.shape + (1,) * (2 - phase.ndim)) if phase.ndim < 2 else phase,
+                            cds.shape[:2])
+    cos_phase, sin_phase = np.ascontiguousarray(np.cos(phase)), np.ascontiguousarray(np.sin(phase))
     out = np.empty_like(cds)
-    _breathing_drag_area_kernel(cds, times, start, peak, amplitude, frequency_hz, damping_ratio, out)
+    _breathing_drag_area_kernel(cds, times, start, peak, amplitude, frequency_hz, damping_ratio, cos_phase,
+                                sin_phase, reefed_share, out)
     return out
 
 
 @numba.njit(cache=True)
-def _breathing_drag_area_kernel(cds, times, start, peak, amplitude, frequency_hz, damping_ratio, out):
+def _breathing_drag_area_kernel(cds, times, start, peak, amplitude, frequency_hz, damping_ratio, cos_phase,
+                                sin_phase, reefed_share, out):
     n_batch, n_chutes, n_times = cds.shape
     n_stages = start.shape[2]
     per_walker = times.shape[0] > 1
@@ -350,6 +367,11 @@ def _breathing_drag_area_kernel(cds, times, start, peak, amplitude, frequency_hz
         omega_d = omega * np.sqrt(1.0 - damping_ratio[b] ** 2)
         row = b if per_walker else 0
         for p in range(n_chutes):
+            last = 0
+            for k in range(n_stages):
+                if np.isfinite(start[b, p, k]):
+                    last += 1
+            c, s = cos_phase[b, p], sin_phase[b, p]
             for n in range(n_times):
                 tn = times[row, n]
                 started = 0
@@ -360,7 +382,9 @@ def _breathing_drag_area_kernel(cds, times, start, peak, amplitude, frequency_hz
                 if started > 0:
                     tau = tn - peak[b, p, started - 1]
                     if tau >= 0.0:      # NaN (a walker's undefined stage) is not: factor 1, as in numpy
-                        factor = 1.0 + amplitude[b] * (np.exp(decay * tau) * np.sin(omega_d * tau))
+                        a = amplitude[b] if started == last else amplitude[b] * reefed_share[b]
+                        x = omega_d * tau
+                        factor = 1.0 + a * np.exp(decay * tau) * (c * np.sin(x) + s * (np.cos(x) - 1.0))
                 out[b, p, n] = cds[b, p, n] * factor
 
 

@@ -65,6 +65,7 @@ class Extension:
     # practical equivalence around the neutral value); None for terms without a physical size.
     practical_floor = None
     physical_lower_limits = ()    # parameters whose prior's lower bound is a physical limit (a lag of 0), not an edge
+    periodic = ()                 # name prefixes of angles: a circle has no edge
     needs_load_cells = False      # a term acting on load cells only does not apply without them
     reads_air_data = False        # reads ρ, V, q̄, γ: given in Context.air (a logger's walkers', a lagged load cell's)
     needs_drag_area_rate = False  # reads Context.law: the model then gives the stage law's rate with its drag areas

@@ -35,11 +35,21 @@ baseline is never copied. The physics is the same as the simulator's
     [−0.2, 0.3] s; r ~ half-normal, scale 0.05 s, below 0.3 s (r = 0 is a
     physical limit, not an edge of the prior).
 
-``canopy_breathing`` — damped oscillation of each canopy after its peak (both)
-    CDS_i(t)·[1 + A·exp(−ζωτ)·sin(ω·sqrt(1−ζ²)·τ)], τ the time since the
-    current stage's peak drag area, ω = 2πf. Priors: A ~ U(0, 0.25);
+``canopy_breathing`` — oscillation of each canopy after its peak (both)
+    CDS_i(t)·[1 + A_k·exp(−ζωτ)·(cos φ_i·sin(ω_d·τ) + sin φ_i·(cos(ω_d·τ) − 1))],
+    τ the time since the current stage's peak drag area, ω = 2πf,
+    ω_d = ω·sqrt(1−ζ²); φ_i canopy i's phase at its peak; A_k = A in the last
+    (full-open) stage and s·A in the reefed ones
+    (:func:`~cpas_bayes.physics.effects.breathing_drag_area`). Priors: A ~ U(0, 0.25);
     f lognormal around 1.2 Hz (Drogue) or 0.35 Hz (Main), spread factor 1.8;
-    ζ ~ U(0.01, 0.6).
+    ζ ~ U(0, 0.4) (ζ = 0, a breathing that goes on, is a physical limit);
+    s ~ U(0, 2) (s = 0, an open canopy breathing alone, is a physical limit);
+    φ_i ~ U(−π, π), an angle, which has no edge. At φ = 0 and s = 1 it is the
+    damped ring from every peak that ``synth`` simulates; the phases and the
+    share let a breathing that the peak does not set going, or that goes on
+    undamped in the open canopy alone, be read as breathing: an independent
+    bundle with such a breathing laid on was `unexplained` without them
+    (``benchmarks/independent_effects.md``, ``canopy_pulse``).
 
 ``correlated_noise`` — AR(1) errors, the generic alternative
     The baseline's errors whitened per bin, z_t = Σ_t^(−½)·e_t (channels and the
@@ -175,11 +185,22 @@ def breathing_frequency_median(parachute):
 # The breathing's damping ratio at most: a ring, whose successive peaks fall by exp(−2πζ/√(1−ζ²)), 6 % at 0.4.
 # A more damped "breathing" is one bump: a stand-in for an added mass beside a drift was fitted at ζ 0.55.
 BREATHING_DAMPING_MAX = 0.4
+# The reefed stages' ring as a share of the open canopy's, at most: a reefed canopy may breathe harder.
+BREATHING_REEFED_SHARE_MAX = 2.0
+BREATHING_PHASE = "breathing_phase_"    # + a canopy's prefix: its phase at its peak, rad
+
+
+def breathing_phase_names(model):
+    """The breathing's phase parameter of each canopy of ``model``, in its order (like canopies of a
+    composite cluster share one)."""
+    return [BREATHING_PHASE + prefix for prefix in model.chute_prefix]
 
 
 class CanopyBreathing(Extension):
     name = "canopy_breathing"
     practical_floor = ("breathing_amplitude", 0.01)   # a 1 % ring of the drag area
+    physical_lower_limits = ("breathing_damping", "breathing_reefed_share")
+    periodic = (BREATHING_PHASE,)
 
     def __init__(self, frequency_guess=None):
         self.frequency_guess = frequency_guess
@@ -187,9 +208,12 @@ class CanopyBreathing(Extension):
     def parameters(self, model):
         kinds = {p.kind: breathing_frequency_median(p) for p in model.parachutes}
         median = float(np.exp(np.mean([math.log(f) for f in kinds.values()])))
-        return [Parameter("breathing_amplitude", Uniform(0.0, 0.25), "", self.name),
-                Parameter("breathing_frequency", LogNormal(median, 0.6, 0.05, 5.0), "Hz", self.name),
-                Parameter("breathing_damping", Uniform(0.01, BREATHING_DAMPING_MAX), "", self.name)]
+        return ([Parameter("breathing_amplitude", Uniform(0.0, 0.25), "", self.name),
+                 Parameter("breathing_frequency", LogNormal(median, 0.6, 0.05, 5.0), "Hz", self.name),
+                 Parameter("breathing_damping", Uniform(0.0, BREATHING_DAMPING_MAX), "", self.name),
+                 Parameter("breathing_reefed_share", Uniform(0.0, BREATHING_REEFED_SHARE_MAX), "", self.name)]
+                + [Parameter(name, Uniform(-math.pi, math.pi), "rad", self.name)
+                   for name in dict.fromkeys(breathing_phase_names(model))])
 
     def initial_values(self, model):
         return {"breathing_frequency": self.frequency_guess} if self.frequency_guess else {}
@@ -197,15 +221,22 @@ class CanopyBreathing(Extension):
     def start_points(self, model):
         # A small ring at the guessed frequency (the residuals' periodogram peak), and one
         # at the prior median frequency in case the guess picked noise.
+        # Each canopy in phase with its peak (the simulated form), and at the guessed frequency also a
+        # quarter period either way, from where the search moves each canopy's phase on its own.
         median = model.parameters[model.index["breathing_frequency"]].prior.ppf(0.5)
         frequencies = [self.frequency_guess, median] if self.frequency_guess else [median]
-        return [{"breathing_amplitude": 0.05, "breathing_frequency": f, "breathing_damping": 0.15}
-                for f in frequencies]
+        phases = dict.fromkeys(breathing_phase_names(model))
+        starts = [(f, phase) for f in frequencies for phase in ((0.0, math.pi / 2, -math.pi / 2)
+                                                                  if f == frequencies[0] else (0.0,))]
+        return [{"breathing_amplitude": 0.05, "breathing_frequency": f, "breathing_damping": 0.15,
+                 "breathing_reefed_share": 1.0, **{name: phase for name in phases}} for f, phase in starts]
 
     def reshape_drag_area(self, ctx, cds, t):
         stage, v = ctx.stage, ctx.values
+        phase = np.stack([v[name] for name in breathing_phase_names(ctx.model)], axis=1)      # (B, P)
         return breathing_drag_area(cds, t, stage["start"], stage["start"] + stage["timing"].t_fp,
-                                   v["breathing_amplitude"], v["breathing_frequency"], v["breathing_damping"])
+                                   v["breathing_amplitude"], v["breathing_frequency"], v["breathing_damping"],
+                                   phase, v["breathing_reefed_share"])
 
 
 class CorrelatedNoise(Extension):
