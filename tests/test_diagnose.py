@@ -172,6 +172,24 @@ def test_terms_that_gain_little_beside_an_unexplained_misfit_are_withdrawn(gains
         assert gained == pytest.approx(gains["added_mass"], abs=0.5) and "over its reference" in why, why
 
 
+@pytest.mark.parametrize("taken_over,share,left,withdrawn", [
+    (-0.01, 0.04, True, True),    # a Drogue's riser ringing: breathing +99.7 beside a misfit it left in place
+    (-0.01, 0.04, False, False),  # nothing significant left: the term explains what there is
+    (0.83, 0.04, True, False),    # it took the discrepancy over: a cause, with a remainder beside it
+    (-0.01, 0.7, True, False),    # it explains most of the discrepancy's gain without it
+])
+def test_a_term_that_leaves_the_discrepancy_untouched_beside_an_unexplained_misfit_is_withdrawn(
+        taken_over, share, left, withdrawn):
+    ref, cands = _field({"canopy_breathing": 99.7})
+    check = rule.check_term("canopy_breathing", cands["canopy_breathing"], ref, OPTIONS, share=taken_over,
+                            misfit=True)
+    assert check.gains and check.eligible, check.reasons
+    rounds = [{"chosen": "canopy_breathing", "checks": [check]}, {"chosen": None, "checks": []}]
+    out, why = rule.withdrawn_terms(["canopy_breathing"], rounds, share, left, OPTIONS)
+    assert out == (["canopy_breathing"] if withdrawn else [])
+    assert ("took over less than 10 %" in why) == withdrawn and (why == "") == (not withdrawn)
+
+
 @pytest.mark.parametrize("shares,clear", [((1.0, 0.05), True), ((1.0, 0.5), False), ((0.8, 0.05), False),
                                           ((None, None), False)])
 def test_a_term_that_takes_over_the_whole_discrepancy_leads_one_that_hardly_touches_it(shares, clear):
