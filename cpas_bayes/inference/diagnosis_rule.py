@@ -271,11 +271,10 @@ def parameter_health(candidate: CandidateFit, term: str, rng=None):
         x = np.asarray(post[p.name].values, float).ravel()
         q05, q50, q95 = np.quantile(x, (0.05, 0.5, 0.95))
         edge = None
-        if p.name.startswith(extension.periodic or ("\0",)):
-            pass      # an angle: its prior's bounds are one point of a circle
-        elif float(p.prior.cdf(q95)) > 1 - EDGE_QUANTILE:
+        angle = any(p.name.startswith(prefix) for prefix in extension.periodic)   # a circle has no edge
+        if not angle and float(p.prior.cdf(q95)) > 1 - EDGE_QUANTILE:
             edge = "upper"
-        elif (float(p.prior.cdf(q05)) < EDGE_QUANTILE and p.name != size_name
+        elif (not angle and float(p.prior.cdf(q05)) < EDGE_QUANTILE and p.name != size_name
               and p.name not in extension.physical_lower_limits):
             edge = "lower"
         prior_var = _prior_variance(p.prior, rng)
@@ -335,16 +334,21 @@ def untouched_beside_unexplained(named, rounds, share, left, options):
     99 % and 83 %). A genuine fast effect beside an out-of-catalogue one would be withdrawn too; the verdict
     is then ``unexplained`` alone, which still flags the test. As in :func:`stand_ins_by_shape`, withdrawn
     only when every named term is such a one."""
-    shares = {c.term: c.share for r in rounds for c in r["checks"] if c.term == r.get("chosen")}
+    chosen = chosen_checks(rounds)
     if named and left and share < options.min_share and \
-            all(shares.get(t) is not None and shares[t] < UNTOUCHED for t in named):
+            all(t in chosen and chosen[t].share is not None and chosen[t].share < UNTOUCHED for t in named):
         return list(named)
     return []
 
 
+def chosen_checks(rounds):
+    """{term: its TermCheck} of the term each round of forward selection chose."""
+    return {c.term: c for r in rounds for c in r["checks"] if c.term == r.get("chosen")}
+
+
 def chosen_gains(rounds):
     """{term: its elpd gain over its reference} of the term each round of forward selection chose."""
-    return {c.term: c.elpd_diff for r in rounds for c in r["checks"] if c.term == r.get("chosen")}
+    return {t: c.elpd_diff for t, c in chosen_checks(rounds).items()}
 
 
 def withdrawn_terms(named, rounds, share, left, options):
