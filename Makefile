@@ -23,8 +23,9 @@ demo: $(STAMP)
 # oversubscribe them (the package's own workers limit themselves the same way, core/executor.py).
 ONE_THREAD := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
+# --durations: every CI log names the slowest tests, where the suite's 30-minute budget goes
 test: $(STAMP)
-	$(ONE_THREAD) $(PY) -m pytest -n $(WORKERS) -q
+	$(ONE_THREAD) $(PY) -m pytest -n $(WORKERS) -q --durations=15
 
 test-quick: $(STAMP)
 	$(ONE_THREAD) $(PY) -m pytest -n $(WORKERS) -q -m "not slow"
