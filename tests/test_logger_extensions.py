@@ -152,10 +152,11 @@ def test_a_logger_drop_with_added_mass_recovers_k_a_and_the_exponent_within_thei
     0.05 s (none flown), and the fit converged. The true k_a sits at the 90 % interval's upper edge, so the
     last bits of the arithmetic decide a 90 % check: on a Xeon it was [0.217, 0.245], on an AMD EPYC
     [0.2171, 0.2427], missing 0.2445 (98 %: [0.2124, 0.2470]); there the exponent's 95 % interval, [1.504,
-    1.765], missed 3/2 too (98 %: from 1.479), the high exponent described below. Measured, 90 %: k_a 0.230 [0.217, 0.245], exponent 1.62
-    [1.507, 1.74] with the receiver's own error multiplier (noise_gnss 1.15); 1.60 [1.48, 1.72] with one
-    multiplier for both sensors. The exponent sits high at large k_a with either: seed 5 (k_a 0.71) gave
-    1.76–1.79 [1.61–1.63, 1.91–1.93], both missing 3/2 (left for the added-mass term's logger form)."""
+    1.765], missed 3/2 too (98 %: from 1.479), the high exponent described below. Measured, 90 %: k_a 0.230
+    [0.217, 0.245], exponent 1.62 [1.507, 1.74] with the receiver's own error multiplier (noise_gnss 1.15);
+    1.60 [1.48, 1.72] with one multiplier for both sensors. The exponent sits high at large k_a with either:
+    seed 5 (k_a 0.71) gave 1.76–1.79 [1.61–1.63, 1.91–1.93], both missing 3/2 (left for the added-mass
+    term's logger form)."""
     from cpas_bayes.inference.fit import SamplerOptions, fit_model
 
     test, doc = synthesize_logger("logger-drop", 3, effect="added_mass")
